@@ -1,0 +1,1 @@
+"""Synthetic 7Scenes-style / fragment / object pairs and rosbag2 storage."""

@@ -1,0 +1,1 @@
+"""Console scripts: one entry point per job; heavy imports stay inside main()."""

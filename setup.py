@@ -1,0 +1,42 @@
+"""ament_python / pip installation of cegc_ros.
+
+Installs the Python packages ``cegc_ros`` and ``msg_adapters``, the ament index marker,
+``package.xml``, the parameter files and the shipped weights under ``share/cegc_ros`` and
+the console scripts (into ``lib/cegc_ros`` via setup.cfg, which is where ``ros2 run`` looks).
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "cegc_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=["cegc_ros", "cegc_ros.*", "msg_adapters", "msg_adapters.*"]),
+    package_data={PACKAGE: ["weights/*.pt"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.pt")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="cegc_ros maintainers",
+    maintainer_email="cegc-ros@example.org",
+    description="CEGC partial point-cloud registration for ROS 2",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "register_node = cegc_ros.node:main",
+            "cegc-make-bag = cegc_ros.tools.make_bag:main",
+            "cegc-replay = cegc_ros.tools.replay:main",
+            "cegc-eval = cegc_ros.tools.evaluate:main",
+            "cegc-train = cegc_ros.tools.train:main",
+            "cegc-demo = cegc_ros.tools.demo:main",
+        ],
+    },
+)
