@@ -1,0 +1,295 @@
+"""The ROS-free registration engine: numpy clouds in metres in, a RegistrationResult out.
+
+    registrar = Registrar.from_checkpoint()            # the weights shipped in the package
+    result = registrar.register(source_xyz, target_xyz)
+    result.T_target_source                              # (4, 4): p_target = T @ [p_source; 1]
+
+Pipeline: drop non-finite points -> voxel grid (``preprocess.voxel_size`` metres, 0 = off) ->
+normalise (see :mod:`cegc_ros.geometry`) -> normals + FPFH on a support subsample -> seeded
+subsample to ``preprocess.num_points`` -> CEGC -> de-normalise to metres -> optional ICP.
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+import threading
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import EngineConfig, PreprocessConfig
+from .geometry import Normalisation, normalise_pair, prepare_cloud, voxel_downsample
+
+CHECKPOINT_FORMAT = 1
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes.pt"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable or does not match this code."""
+
+
+@dataclass
+class RegistrationResult:
+    """Result of one registration. Points are in metres, each in its own frame."""
+
+    T_target_source: np.ndarray          # (4, 4) float64, maps source points into the target frame
+    source_points: np.ndarray            # (Ns, 3) float32, the subsampled source the network saw
+    target_points: np.ndarray            # (Nt, 3) float32
+    source_overlap: np.ndarray           # (Ns,) float32 in [0, 1]
+    target_overlap: np.ndarray           # (Nt,) float32 in [0, 1]
+    correspondences: np.ndarray          # (M, 2) int64: (index into source_points, into target_points)
+    weights: np.ndarray                  # (M,) float32 in [0, 1]
+    covariance: np.ndarray               # (6, 6) float64, ROS order x y z roll pitch yaw
+    fitness: float                       # fraction of source points within inlier_distance after alignment
+    inlier_distance: float               # metres
+    valid: bool
+    reason: str = ""                     # why not valid; "" when valid
+    refined: str = "none"                # "none" | "icp"
+    timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
+
+
+def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
+    """Write format version, model config, state dict and training metadata."""
+    import torch
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "model_config": model.cfg.to_dict(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "metadata": dict(metadata or {}),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """Build the model a checkpoint describes and load its weights; CheckpointError on any problem."""
+    import torch
+
+    from .model import CEGC, ModelConfig
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: file not found")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, AttributeError,
+            pickle.UnpicklingError) as err:
+        raise CheckpointError(f"checkpoint {path}: unreadable ({type(err).__name__}: {err})".splitlines()[0]) from err
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        got = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise CheckpointError(f"checkpoint {path}: format {got!r}, expected {CHECKPOINT_FORMAT}")
+    try:
+        cfg = ModelConfig.from_dict(payload["model_config"])
+        model = CEGC(cfg)
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"checkpoint {path}: does not match the CEGC model ({err})".splitlines()[0]) from err
+    model.to(device).eval()
+    return model, dict(payload.get("metadata", {}))
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> 'cuda' when available else 'cpu'; other values are checked."""
+    import torch
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but CUDA is not available")
+    if device != "cpu" and not device.startswith("cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {device!r}")
+    return device
+
+
+def _finite_cloud(name: str, xyz: Any, min_points: int) -> np.ndarray:
+    arr = np.asarray(xyz)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
+    arr = arr[np.isfinite(arr).all(axis=1)].astype(np.float64)
+    if len(arr) < min_points:
+        raise ValueError(f"{name} has {len(arr)} finite points, at least {min_points} are needed")
+    return arr
+
+
+def covariance_from_correspondences(src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
+                                    T: np.ndarray) -> np.ndarray:
+    """6x6 covariance (x y z roll pitch yaw) of the weighted point-to-point least squares at T.
+
+    Gauss-Newton: residual r_i = R p_i + t - q_i, Jacobian [I, -[R p_i]x]; covariance =
+    sigma^2 (J^T W J)^-1 with sigma^2 the weighted mean squared residual. Rows reorder from
+    (translation, rotation) which is already ROS order.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    rp = src @ R.T
+    res = rp + t - tgt
+    w = np.clip(w.astype(np.float64), 0.0, None)
+    if w.sum() <= 1e-12 or len(src) < 3:
+        return np.diag([1e6] * 6)
+    J = np.zeros((len(src), 3, 6))
+    J[:, :, :3] = np.eye(3)
+    x, y, z = rp[:, 0], rp[:, 1], rp[:, 2]
+    skew = np.zeros((len(src), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -z, y
+    skew[:, 1, 0], skew[:, 1, 2] = z, -x
+    skew[:, 2, 0], skew[:, 2, 1] = -y, x
+    J[:, :, 3:] = -skew
+    H = np.einsum("n,nij,nik->jk", w, J, J)
+    sigma2 = float((w * (res ** 2).sum(1)).sum() / (3.0 * w.sum()))
+    try:
+        cov = np.linalg.inv(H) * max(sigma2, 1e-12)
+    except np.linalg.LinAlgError:
+        return np.diag([1e6] * 6)
+    cov = 0.5 * (cov + cov.T)
+    if not np.isfinite(cov).all():
+        return np.diag([1e6] * 6)
+    return cov
+
+
+class Registrar:
+    """Registers two clouds with a CEGC checkpoint. Thread-safe: one registration at a time."""
+
+    MIN_POINTS = 16
+
+    def __init__(self, model: Any, device: str, checkpoint_path: str, metadata: dict[str, Any],
+                 preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
+        self.model = model
+        self.device = device
+        self.checkpoint_path = checkpoint_path
+        self.metadata = metadata
+        self.preprocess = copy.deepcopy(preprocess) if preprocess else PreprocessConfig()
+        self.engine = copy.deepcopy(engine) if engine else EngineConfig()
+        self._lock = threading.Lock()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
+                        preprocess: PreprocessConfig | None = None,
+                        engine: EngineConfig | None = None) -> Registrar:
+        """Load a checkpoint (None or "" = the weights shipped in the package) onto a device."""
+        import torch
+        engine = copy.deepcopy(engine) if engine else EngineConfig()
+        if path in (None, ""):
+            path = engine.checkpoint or DEFAULT_WEIGHTS
+        dev = resolve_device(device if device != "auto" else engine.device)
+        if engine.threads > 0:
+            torch.set_num_threads(engine.threads)
+        model, meta = load_checkpoint(path, dev)
+        engine.checkpoint = str(path)
+        engine.device = dev
+        return cls(model, dev, str(path), meta, preprocess, engine)
+
+    def update(self, preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
+        """Change settings; they apply from the next register() call."""
+        with self._lock:
+            if preprocess is not None:
+                self.preprocess = copy.deepcopy(preprocess)
+            if engine is not None:
+                keep = (self.engine.checkpoint, self.engine.device)
+                self.engine = copy.deepcopy(engine)
+                self.engine.checkpoint, self.engine.device = keep
+
+    @property
+    def uses_features(self) -> bool:
+        return self.model.cfg.variant == "ri"
+
+    def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
+        """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
+        with self._lock:
+            return self._register(source_xyz, target_xyz, self.preprocess, self.engine)
+
+    def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
+                  pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
+        import torch
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        src = _finite_cloud("source", source_xyz, self.MIN_POINTS)
+        tgt = _finite_cloud("target", target_xyz, self.MIN_POINTS)
+        if pre.voxel_size > 0:
+            src = voxel_downsample(src, pre.voxel_size).astype(np.float64)
+            tgt = voxel_downsample(tgt, pre.voxel_size).astype(np.float64)
+            for name, c in (("source", src), ("target", tgt)):
+                if len(c) < self.MIN_POINTS:
+                    raise ValueError(f"{name} has {len(c)} points after the {pre.voxel_size} m voxel grid, "
+                                     f"at least {self.MIN_POINTS} are needed")
+        src_n, tgt_n, norm = normalise_pair(src, tgt)
+        rng = np.random.default_rng(pre.seed)
+        ps = prepare_cloud(src_n, pre.num_points, rng, self.uses_features)
+        pt = prepare_cloud(tgt_n, pre.num_points, rng, self.uses_features)
+        t1 = time.perf_counter()
+        timings["preprocess"] = t1 - t0
+
+        def tens(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a)).unsqueeze(0).to(self.device)
+
+        with torch.inference_mode():
+            out = self.model(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
+                             tens(ps.desc), tens(pt.desc))
+        t2 = time.perf_counter()
+        timings["network"] = t2 - t1
+
+        R = out.R[0].double().cpu().numpy()
+        t_n = out.t[0].double().cpu().numpy()
+        valid = bool(out.valid[0])
+        T = norm.to_metres(R, t_n)
+        src_m = (ps.points.astype(np.float64) * norm.scale + norm.c_source)
+        tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
+        sel = out.src_idx[0].cpu().numpy()
+        corr = np.stack([sel, out.match[0].cpu().numpy()], axis=1).astype(np.int64)
+        weights = out.weights[0].float().cpu().numpy()
+        s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
+        t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
+        reason = "" if valid else "degenerate correspondences (weights ~0 or collinear points)"
+        if valid and not np.isfinite(T).all():
+            valid, reason = False, "non-finite transform"
+        refined = "none"
+        if valid and eng.refine == "icp":
+            t3 = time.perf_counter()
+            T = self._icp(src, tgt, T, norm, eng)
+            refined = "icp"
+            timings["refine"] = time.perf_counter() - t3
+        spacing = _median_spacing(tgt_m)
+        inlier = 2.0 * spacing
+        fitness = _fitness(src_m, tgt_m, T, inlier)
+        cov = covariance_from_correspondences(src_m[corr[:, 0]], tgt_m[corr[:, 1]], weights, T)
+        timings["total"] = time.perf_counter() - t0
+        return RegistrationResult(
+            T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
+            source_overlap=s_ov, target_overlap=t_ov, correspondences=corr, weights=weights,
+            covariance=cov, fitness=fitness, inlier_distance=inlier, valid=valid, reason=reason,
+            refined=refined, timings=timings)
+
+    @staticmethod
+    def _icp(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, norm: Normalisation,
+             eng: EngineConfig) -> np.ndarray:
+        """Open3D point-to-plane ICP on the (voxelized) clouds, started from T."""
+        import open3d as o3d
+        reg = o3d.pipelines.registration
+        dist = eng.icp_max_distance * norm.scale
+        ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+        pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
+        pt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * dist, max_nn=30))
+        res = reg.registration_icp(ps, pt, dist, T, reg.TransformationEstimationPointToPlane(),
+                                   reg.ICPConvergenceCriteria(max_iteration=eng.icp_max_iterations))
+        out = np.asarray(res.transformation, np.float64)
+        return out if np.isfinite(out).all() else T
+
+
+def _median_spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance within one cloud."""
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:
+    """Fraction of source points within dist of the target after applying T."""
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(tgt).query(src @ T[:3, :3].T + T[:3, 3], k=1)
+    return float((d <= dist).mean())

@@ -1,0 +1,119 @@
+"""Preprocessing shared by the engine and the trainer: the frame the network works in.
+
+The network sees each cloud centred on its own centroid and both divided by one common scale
+``s = 2 * max(rms radius of source, rms radius of target)`` (rotation-invariant, unlike a
+bounding box), so clouds of any size in metres look alike. With normalised points
+``x_n = (x - c_s) / s`` and ``y_n = (y - c_t) / s`` a transform ``y_n = R x_n + t_n`` is, in
+metres, ``T_target_source = [R | s t_n + c_t - R c_s]``.
+
+Rotation-invariant inputs (model variant "ri"): normals estimated by PCA over a radius and
+oriented towards the cloud's centroid (a rigid motion moves the centroid with the cloud, so the
+orientation is invariant), and FPFH descriptors (Open3D) divided by 100 so that each of their
+three 11-bin histograms sums to 1. Radii are in normalised units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+NORMAL_RADIUS = 0.04     # normalised units: about 15-20 neighbours at 2048 points
+FPFH_RADIUS = 0.10       # about 100 neighbours at 2048 points
+SUPPORT_POINTS = 2048    # points on which normals and FPFH are computed
+
+
+@dataclass
+class Normalisation:
+    """Centres (3,) of each cloud and the common scale s (metres per normalised unit)."""
+
+    c_source: np.ndarray
+    c_target: np.ndarray
+    scale: float
+
+    def to_metres(self, R: np.ndarray, t_n: np.ndarray) -> np.ndarray:
+        """(3, 3) rotation and (3,) normalised translation -> 4x4 float64 T_target_source."""
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = self.scale * np.asarray(t_n, np.float64) + self.c_target - R @ self.c_source
+        return T
+
+    def to_normalised(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """4x4 T_target_source in metres -> (R, t_n) in the normalised frame."""
+        R = T[:3, :3]
+        return R, (R @ self.c_source + T[:3, 3] - self.c_target) / self.scale
+
+
+def normalise_pair(source: np.ndarray, target: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, Normalisation]:
+    """(N, 3), (M, 3) metres -> normalised float32 copies and the Normalisation."""
+    src = np.asarray(source, np.float64)
+    tgt = np.asarray(target, np.float64)
+    cs, ct = src.mean(0), tgt.mean(0)
+    rs = np.sqrt(((src - cs) ** 2).sum(1).mean())
+    rt = np.sqrt(((tgt - ct) ** 2).sum(1).mean())
+    s = 2.0 * max(rs, rt)
+    if not np.isfinite(s) or s <= 1e-9:
+        raise ValueError(f"clouds have no spatial extent (rms radius {max(rs, rt):.3g} m)")
+    norm = Normalisation(cs, ct, float(s))
+    return ((src - cs) / s).astype(np.float32), ((tgt - ct) / s).astype(np.float32), norm
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Mean point per occupied voxel; (N, 3) -> (K, 3) float32. voxel <= 0 returns the input."""
+    if voxel <= 0:
+        return np.asarray(points, np.float32)
+    import open3d as o3d
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    return np.asarray(pcd.voxel_down_sample(voxel).points, np.float32)
+
+
+def subsample(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of n points (without replacement while possible, sorted for stable order)."""
+    N = len(points)
+    if N <= n:
+        idx = np.arange(N)
+        if N < n:   # pad by repetition so the network always sees n points
+            idx = np.concatenate([idx, rng.choice(N, n - N, replace=True)])
+        return idx
+    return np.sort(rng.choice(N, n, replace=False))
+
+
+def normals_and_fpfh(points: np.ndarray, normal_radius: float = NORMAL_RADIUS,
+                     fpfh_radius: float = FPFH_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) normalised points -> normals (N, 3) float32, FPFH / 100 (N, 33) float32."""
+    import open3d as o3d
+    reg = o3d.pipelines.registration
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
+    n = np.asarray(pcd.normals)
+    centre = np.asarray(points, np.float64).mean(0)
+    flip = ((centre - np.asarray(points)) * n).sum(1) < 0
+    n[flip] *= -1.0
+    pcd.normals = o3d.utility.Vector3dVector(n)
+    fpfh = reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=fpfh_radius, max_nn=100))
+    return n.astype(np.float32), (np.asarray(fpfh.data).T / 100.0).astype(np.float32)
+
+
+@dataclass
+class PreparedCloud:
+    """One cloud as the network takes it (normalised frame)."""
+
+    points: np.ndarray      # (n, 3) float32 normalised
+    normals: np.ndarray     # (n, 3) float32
+    desc: np.ndarray        # (n, 33) float32
+    index: np.ndarray       # (n,) indices into the cloud given to prepare_cloud
+
+
+def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generator,
+                  with_features: bool = True, support_points: int = SUPPORT_POINTS) -> PreparedCloud:
+    """Support subsample -> normals + FPFH on the support -> network subsample of num_points."""
+    sup = subsample(points_n, support_points, rng) if len(points_n) > support_points else np.arange(len(points_n))
+    pts = points_n[sup]
+    if with_features:
+        normals, desc = normals_and_fpfh(pts)
+    else:
+        normals = np.zeros_like(pts)
+        desc = np.zeros((len(pts), 33), np.float32)
+    sel = subsample(pts, num_points, rng)
+    return PreparedCloud(pts[sel], normals[sel], desc[sel], sup[sel])

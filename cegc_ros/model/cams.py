@@ -1,0 +1,108 @@
+"""CAMS: pairwise correspondence scores with Context Feature Modulation (paper section
+"Correspondence Search via CAMS").
+
+For every candidate pair (o_x_i, o_y_j) of the two top-N overlap subsets:
+    F_S = [o_x, o_y, ||o_x - o_y||]          -> F'_S = f_C5(F_S)
+    F_G = [f_x, f_y, ||f_x - f_y||]          -> F'_G = f_C5(F_G)
+    F'_H = f_C5(F'_S * F'_G)
+    F^o = f_C6([o_x, o_y, ||o_x - o_y||]),  m = mean_ij F^o
+    gamma = sigmoid(f_mod(F^o, m)),  F''_H = f_C7(gamma * F'_H)  (a score per pair)
+    w_i = sigmoid(f(max_j gamma * F'_H))     (confidence of row i's match)
+
+Implementation choices (recorded here, where the code is):
+- No (N, N, 513) tensor is ever built. The first linear layer of each descriptor MLP is split:
+  W [a; b; d] = A a + B b + c d, so A f_x and B f_y are computed once per point and only the
+  scalar norm term is per pair. Rows are processed in chunks of ``chunk_rows`` so that memory
+  grows as chunk_rows x N x C5, not N^2 x 513.
+- m needs every pair, so F^o is evaluated in two passes (one for m, one for gamma).
+- ``variant == "ri"``: raw coordinates of two clouds in different frames carry no rotation-
+  invariant information, so the spatial descriptor uses each point's distance to its cloud's
+  centroid, [rho_x, rho_y, |rho_x - rho_y|]. ``variant == "paper"`` uses the paper's descriptor.
+- f_mod reads [F^o_ij, m] through a split linear layer (F^o_ij and m projected separately).
+- No normalisation layers inside CAMS: they would run over N^2 x C5 elements for little gain.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+
+class SplitPairLinear(nn.Module):
+    """Linear layer over the pair descriptor [a_i, b_j, d_ij] without materialising it."""
+
+    def __init__(self, c_a: int, c_out: int) -> None:
+        super().__init__()
+        self.a = nn.Linear(c_a, c_out)
+        self.b = nn.Linear(c_a, c_out, bias=False)
+        self.d = nn.Parameter(torch.zeros(c_out))
+        nn.init.normal_(self.d, std=0.1)
+
+    def project(self, a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+        """Per-point halves: a (B, N, c_a) -> (B, N, C), b (B, M, c_a) -> (B, M, C)."""
+        return self.a(a), self.b(b)
+
+    @staticmethod
+    def combine(pa: Tensor, pb: Tensor, dist: Tensor, dvec: Tensor) -> Tensor:
+        """pa (B, r, C), pb (B, M, C), dist (B, r, M) -> (B, r, M, C)."""
+        return pa.unsqueeze(2) + pb.unsqueeze(1) + dist.unsqueeze(-1) * dvec
+
+
+class CAMS(nn.Module):
+    def __init__(self, feat_dim: int, c5: int, variant: str, chunk_rows: int) -> None:
+        super().__init__()
+        self.variant = variant
+        self.chunk_rows = chunk_rows
+        c_sp = 3 if variant == "paper" else 1
+        self.sp1 = SplitPairLinear(c_sp, c5)       # f_C5 on F_S, first layer
+        self.sp2 = nn.Linear(c5, c5)
+        self.ft1 = SplitPairLinear(feat_dim, c5)   # f_C5 on F_G, first layer
+        self.ft2 = nn.Linear(c5, c5)
+        self.fuse = nn.Linear(c5, c5)              # f_C5 on F'_S * F'_G
+        self.ctx1 = SplitPairLinear(c_sp, c5)      # f_C6 on the spatial descriptor
+        self.ctx2 = nn.Linear(c5, c5)
+        self.mod_pair = nn.Linear(c5, c5)          # f_mod(F^o_ij, m)
+        self.mod_glob = nn.Linear(c5, c5, bias=False)
+        self.mod_out = nn.Linear(c5, c5)
+        self.score = nn.Linear(c5, 1)              # f_C7
+        self.weight = nn.Linear(c5, 1)             # f in w_i = sigmoid(f(max_j gamma F'_H))
+
+    def _spatial(self, ox: Tensor, oy: Tensor) -> tuple[Tensor, Tensor]:
+        if self.variant == "paper":
+            return ox, oy
+        rx = (ox - ox.mean(dim=1, keepdim=True)).norm(dim=-1, keepdim=True)   # (B, N, 1)
+        ry = (oy - oy.mean(dim=1, keepdim=True)).norm(dim=-1, keepdim=True)
+        return rx, ry
+
+    def forward(self, ox: Tensor, oy: Tensor, fx: Tensor, fy: Tensor) -> tuple[Tensor, Tensor]:
+        """ox (B, N, 3), oy (B, M, 3), fx (B, N, C), fy (B, M, C) ->
+        scores (B, N, M) (F''_H) and per-row confidence logits (B, N)."""
+        sx, sy = self._spatial(ox, oy)
+        sdist_full = torch.cdist(sx, sy)                                 # (B, N, M)
+        fdist_full = torch.cdist(fx, fy)                                 # (B, N, M)
+        sp_a, sp_b = self.sp1.project(sx, sy)
+        ft_a, ft_b = self.ft1.project(fx, fy)
+        cx_a, cx_b = self.ctx1.project(sx, sy)
+        relu = torch.relu
+        rows = range(0, ox.shape[1], self.chunk_rows)
+
+        def ctx_chunk(s: slice) -> Tensor:
+            h = relu(self.ctx1.combine(cx_a[:, s], cx_b, sdist_full[:, s], self.ctx1.d))
+            return relu(self.ctx2(h))                                    # (B, r, M, C)  F^o
+
+        # Pass 1: the global summary m = mean over all pairs of F^o.
+        m = sum(ctx_chunk(slice(r, r + self.chunk_rows)).sum(dim=(1, 2)) for r in rows)
+        m = m / (ox.shape[1] * oy.shape[1])                              # (B, C)
+        glob = self.mod_glob(m)[:, None, None, :]                        # (B, 1, 1, C)
+
+        scores, conf = [], []
+        for r in rows:
+            s = slice(r, r + self.chunk_rows)
+            fs = relu(self.sp2(relu(self.sp1.combine(sp_a[:, s], sp_b, sdist_full[:, s], self.sp1.d))))
+            fg = relu(self.ft2(relu(self.ft1.combine(ft_a[:, s], ft_b, fdist_full[:, s], self.ft1.d))))
+            fh = relu(self.fuse(fs * fg))                                # (B, r, M, C)  F'_H
+            gamma = torch.sigmoid(self.mod_out(relu(self.mod_pair(ctx_chunk(s)) + glob)))
+            g = gamma * fh
+            scores.append(self.score(g).squeeze(-1))                     # (B, r, M)
+            conf.append(self.weight(g.max(dim=2).values).squeeze(-1))    # (B, r)
+        return torch.cat(scores, dim=1), torch.cat(conf, dim=1)

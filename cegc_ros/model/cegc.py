@@ -1,0 +1,102 @@
+"""CEGC: Confidence Estimation under Global Context (the whole network).
+
+Pipeline (paper section METHOD): AGNN local features -> interleaved self/cross attention ->
+HOCE overlap confidence and top-N selection -> CAMS pair scores with CFM -> argmax
+correspondences -> confidence-weighted SVD.
+
+Deviations from the paper, each selectable or recorded (see also the module docstrings of
+features.py, hoce.py and cams.py):
+
+1. ``variant="ri"`` (default) feeds rotation-invariant encodings instead of raw coordinates:
+   AGNN edges are point-pair features from estimated normals plus a per-point FPFH descriptor,
+   and CAMS's spatial descriptor uses distances to the centroid. Reason: the paper's encodings
+   are rotation-variant, so the network must learn rotation equivariance from data over
+   +-45 deg on three axes, which a CPU budget cannot pay for (shared/notes/TRAINING_FACTS.md:
+   0% recall after 40 CPU-minutes). ``variant="paper"`` keeps the paper's encodings.
+2. During training the correspondences are soft (softmax over each score row, temperature
+   ``match_temperature``) so the pose loss reaches the scores; inference uses the paper's
+   argmax. The loss adds a dense correspondence term (see losses.py).
+3. The confidence head w_i is additionally supervised with match correctness (losses.py).
+Ground truth never enters forward(): labels are made in the loss code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from .cams import CAMS
+from .config import ModelConfig
+from .features import AGNN, ContextEnhancer, knn, paper_edges, ppf_edges
+from .hoce import HOCE, top_n_indices
+from .svd import weighted_kabsch
+
+
+@dataclass
+class CEGCOutput:
+    """What forward() returns. Indices refer to the input clouds' point order."""
+
+    src_overlap_logits: Tensor   # (B, N)
+    tgt_overlap_logits: Tensor   # (B, M)
+    src_idx: Tensor              # (B, n1) top-N source points
+    tgt_idx: Tensor              # (B, n2) top-N target points
+    scores: Tensor               # (B, n1, n2) F''_H
+    conf_logits: Tensor          # (B, n1) logits of w_i
+    match: Tensor                # (B, n1) argmax partner, index into the target cloud
+    weights: Tensor              # (B, n1) w_i in [0, 1]
+    R: Tensor                    # (B, 3, 3) rotation of T_target_source
+    t: Tensor                    # (B, 3)
+    valid: Tensor                # (B,) bool
+
+
+def _take(x: Tensor, idx: Tensor) -> Tensor:
+    """x (B, N, C), idx (B, n) -> (B, n, C)."""
+    return x.gather(1, idx.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+
+
+class CEGC(nn.Module):
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        if cfg.variant == "paper":
+            c_edge, c_point = 6, 0
+        else:
+            c_edge, c_point = 4, cfg.desc_dim
+        self.agnn = AGNN(c_edge, c_point, cfg.agnn_dims, cfg.feat_dim)
+        self.context = ContextEnhancer(cfg.feat_dim, cfg.attn_heads, cfg.attn_layers)
+        self.hoce = HOCE(cfg.feat_dim, cfg.hoce_topk)
+        self.cams = CAMS(cfg.feat_dim, cfg.cams_dim, cfg.variant, cfg.chunk_rows)
+
+    def encode(self, xyz: Tensor, normals: Tensor | None, desc: Tensor | None) -> Tensor:
+        """Per-point local features (B, N, C2) of one cloud."""
+        idx = knn(xyz, self.cfg.k)
+        if self.cfg.variant == "paper":
+            return self.agnn(paper_edges(xyz, idx), idx, None)
+        if normals is None or desc is None:
+            raise ValueError("variant 'ri' needs normals and descriptors for every cloud")
+        return self.agnn(ppf_edges(xyz, normals, idx), idx, desc)
+
+    def forward(self, src: Tensor, tgt: Tensor,
+                src_normals: Tensor | None = None, tgt_normals: Tensor | None = None,
+                src_desc: Tensor | None = None, tgt_desc: Tensor | None = None) -> CEGCOutput:
+        """src (B, N, 3), tgt (B, M, 3) in the normalised frame; normals (B, ., 3) and
+        descriptors (B, ., desc_dim) for variant 'ri'."""
+        fx = self.encode(src, src_normals, src_desc)
+        fy = self.encode(tgt, tgt_normals, tgt_desc)
+        fx, fy = self.context(fx, fy)
+        lx, ly = self.hoce(fx, fy)                                       # (B, N), (B, M)
+        ix = top_n_indices(lx, self.cfg.overlap_ratio)                   # (B, n1)
+        iy = top_n_indices(ly, self.cfg.overlap_ratio)                   # (B, n2)
+        ox, oy = _take(src, ix), _take(tgt, iy)
+        scores, conf_logits = self.cams(ox, oy, _take(fx, ix), _take(fy, iy))
+        weights = torch.sigmoid(conf_logits)                             # (B, n1)
+        best = scores.argmax(dim=-1)                                     # (B, n1) into oy
+        if self.training:
+            p = torch.softmax(scores / self.cfg.match_temperature, dim=-1)
+            partner = p @ oy                                             # (B, n1, 3) soft
+        else:
+            partner = _take(oy, best)
+        R, t, valid = weighted_kabsch(ox, partner, weights)
+        return CEGCOutput(lx, ly, ix, iy, scores, conf_logits, iy.gather(1, best), weights, R, t, valid)

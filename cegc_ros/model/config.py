@@ -1,0 +1,59 @@
+"""Hyper-parameters of the CEGC network: one dataclass, the paper's defaults, stored in checkpoints."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+VARIANTS = ("paper", "ri")
+
+
+@dataclass
+class ModelConfig:
+    """Every hyper-parameter of :class:`cegc_ros.model.cegc.CEGC`.
+
+    ``variant`` selects the input encoding:
+
+    - ``"paper"``: the paper as written. AGNN edges are ``[x_i, x_i - x_j]`` and CAMS's
+      spatial descriptor is ``[o_x, o_y, ||o_x - o_y||]``, both in raw coordinates.
+    - ``"ri"``: rotation-invariant inputs (our default, see ``cegc.py`` for why). AGNN edges are
+      point-pair features ``[|d|, n_i.d, n_j.d, n_i.n_j]`` plus a per-point FPFH descriptor;
+      CAMS's spatial descriptor uses each point's distance to its cloud's centroid.
+    """
+
+    variant: str = "ri"
+    k: int = 12                          # kNN neighbourhood (paper: 12 everywhere)
+    agnn_dims: tuple[int, ...] = (64, 64, 128)   # C1 of the three AGNN layers
+    feat_dim: int = 256                  # C2: per-point feature size (paper: 256)
+    attn_layers: int = 2                 # interleaved (self, cross) blocks
+    attn_heads: int = 4
+    desc_dim: int = 33                   # per-point invariant descriptor (FPFH) size, "ri" only
+    hoce_topk: int = 16                  # sorted similarities per row fed to HOCE's refinement MLP
+    overlap_ratio: float = 0.5           # top-N = floor(overlap_ratio * points) (paper: 0.5)
+    cams_dim: int = 32                   # C5 = C6: CAMS pair embedding width
+    chunk_rows: int = 256                # CAMS rows per chunk (bounds memory at large N)
+    match_temperature: float = 0.1       # softmax temperature of soft correspondences (training)
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"ModelConfig.variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.k < 2:
+            raise ValueError(f"ModelConfig.k must be >= 2, got {self.k}")
+        if not 0.0 < self.overlap_ratio <= 1.0:
+            raise ValueError(f"ModelConfig.overlap_ratio must be in (0, 1], got {self.overlap_ratio}")
+        self.agnn_dims = tuple(int(d) for d in self.agnn_dims)
+        if len(self.agnn_dims) != 3:
+            raise ValueError(f"ModelConfig.agnn_dims needs 3 layer widths, got {self.agnn_dims}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["agnn_dims"] = list(self.agnn_dims)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown ModelConfig fields: {sorted(unknown)}")
+        return cls(**d)

@@ -1,0 +1,171 @@
+"""The ROS-free engine: checkpoints, input validation, de-normalisation, result contents."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cegc_ros.config import EngineConfig, PreprocessConfig
+from cegc_ros.engine import (DEFAULT_WEIGHTS, CheckpointError, Registrar, covariance_from_correspondences,
+                             load_checkpoint, save_checkpoint)
+from cegc_ros.geometry import normalise_pair
+from cegc_ros.model import CEGC, ModelConfig
+
+
+def euler_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+
+def scene(n: int = 3000, seed: int = 0) -> np.ndarray:
+    """A corner of a room with a box: structured enough for normals/FPFH (metres)."""
+    rng = np.random.default_rng(seed)
+    k = n // 4
+    floor = np.c_[rng.uniform(0, 3, k), rng.uniform(0, 3, k), np.zeros(k)]
+    wall1 = np.c_[np.zeros(k), rng.uniform(0, 3, k), rng.uniform(0, 2.5, k)]
+    wall2 = np.c_[rng.uniform(0, 3, k), np.zeros(k), rng.uniform(0, 2.5, k)]
+    box = rng.uniform(0, 1, (n - 3 * k, 3)) * [0.6, 0.4, 0.8] + [1.2, 1.5, 0]
+    return np.vstack([floor, wall1, wall2, box]).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    torch.manual_seed(0)
+    cfg = ModelConfig(agnn_dims=(16, 16, 32), feat_dim=32, attn_heads=2, attn_layers=1, cams_dim=8, hoce_topk=4)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, CEGC(cfg), {"note": "random init, for tests"})
+    return path
+
+
+def test_checkpoint_round_trip(tiny_checkpoint):
+    model, meta = load_checkpoint(tiny_checkpoint)
+    assert meta == {"note": "random init, for tests"}
+    ref = torch.load(tiny_checkpoint, weights_only=True)["state_dict"]
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, ref[k])
+    assert model.cfg.feat_dim == 32 and not model.training
+
+
+def test_missing_checkpoint_names_the_file(tmp_path):
+    with pytest.raises(CheckpointError, match="nope.pt: file not found"):
+        Registrar.from_checkpoint(tmp_path / "nope.pt", device="cpu")
+
+
+def test_truncated_checkpoint(tiny_checkpoint, tmp_path):
+    bad = tmp_path / "truncated.pt"
+    bad.write_bytes(tiny_checkpoint.read_bytes()[:5000])
+    with pytest.raises(CheckpointError, match="truncated.pt: unreadable"):
+        Registrar.from_checkpoint(bad, device="cpu")
+
+
+def test_garbage_and_foreign_checkpoints(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00not a checkpoint" * 100)
+    with pytest.raises(CheckpointError, match="junk.pt"):
+        Registrar.from_checkpoint(junk, device="cpu")
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(CheckpointError, match="foreign.pt: format None"):
+        Registrar.from_checkpoint(foreign, device="cpu")
+
+
+def test_mismatched_checkpoint(tiny_checkpoint, tmp_path):
+    payload = torch.load(tiny_checkpoint, weights_only=True)
+    payload["model_config"]["feat_dim"] = 64          # the weights are 32-wide
+    bad = tmp_path / "mismatch.pt"
+    torch.save(payload, bad)
+    with pytest.raises(CheckpointError, match="mismatch.pt: does not match"):
+        Registrar.from_checkpoint(bad, device="cpu")
+
+
+def test_too_few_points_and_bad_shapes(tiny_checkpoint):
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu")
+    with pytest.raises(ValueError, match="source has 10 finite points"):
+        reg.register(np.zeros((10, 3)), scene(200))
+    nan_cloud = scene(200)
+    nan_cloud[5:] = np.nan
+    with pytest.raises(ValueError, match="target has 5 finite points"):
+        reg.register(scene(200), nan_cloud)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        reg.register(np.zeros((100, 2)), scene(200))
+
+
+def test_result_contents(tiny_checkpoint):
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=256))
+    src = scene(2000, seed=1)
+    res = reg.register(src, src @ euler_z(20).T + [0.3, -0.2, 0.1])
+    assert res.T_target_source.shape == (4, 4) and res.T_target_source.dtype == np.float64
+    assert np.allclose(res.T_target_source[3], [0, 0, 0, 1])
+    assert res.source_points.shape == (256, 3) and res.target_points.shape == (256, 3)
+    assert res.source_overlap.shape == (256,) and ((res.source_overlap >= 0) & (res.source_overlap <= 1)).all()
+    assert res.correspondences.shape == (128, 2) and res.weights.shape == (128,)
+    assert res.correspondences[:, 0].max() < 256 and res.correspondences[:, 1].max() < 256
+    assert res.covariance.shape == (6, 6) and np.allclose(res.covariance, res.covariance.T)
+    assert 0.0 <= res.fitness <= 1.0
+    assert {"preprocess", "network", "total"} <= set(res.timings)
+
+
+def test_denormalisation_returns_metres_at_any_scale(tiny_checkpoint):
+    """The same clouds at 16x scale give the same rotation and a 16x translation.
+
+    A power of two keeps the normalised inputs bit-identical, so any difference would come
+    from de-normalisation alone (an untrained network amplifies rounding differences).
+    """
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=256))
+    src = scene(1500, seed=2)
+    tgt = src @ euler_z(30).T + [0.5, 0.2, -0.1]
+    a = reg.register(src, tgt)
+    b = reg.register(16.0 * src, 16.0 * tgt)
+    assert np.allclose(a.T_target_source[:3, :3], b.T_target_source[:3, :3], atol=1e-6)
+    assert np.allclose(16.0 * a.T_target_source[:3, 3], b.T_target_source[:3, 3], atol=1e-5)
+    assert np.allclose(16.0 * a.source_points, b.source_points, rtol=1e-5, atol=1e-4)
+
+
+def test_normalisation_round_trip():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(500, 3)) * 4 + 10
+    T = np.eye(4)
+    T[:3, :3] = euler_z(40)
+    T[:3, 3] = [1.0, -2.0, 3.0]
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    src_n, tgt_n, norm = normalise_pair(src, tgt)
+    R, t_n = norm.to_normalised(T)
+    assert np.allclose(src_n @ R.T + t_n, tgt_n, atol=1e-4)
+    assert np.allclose(norm.to_metres(R, t_n), T)
+
+
+def test_covariance_shrinks_with_more_consistent_correspondences():
+    rng = np.random.default_rng(0)
+    src = rng.uniform(-1, 1, (200, 3))
+    T = np.eye(4)
+    cov_small = covariance_from_correspondences(src, src + rng.normal(0, 0.001, src.shape), np.ones(200), T)
+    cov_large = covariance_from_correspondences(src, src + rng.normal(0, 0.05, src.shape), np.ones(200), T)
+    assert np.all(np.diag(cov_small) > 0)
+    assert np.all(np.diag(cov_small) < np.diag(cov_large))
+
+
+def test_runtime_update_applies_to_next_call(tiny_checkpoint):
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=128))
+    src = scene(1000, seed=3)
+    assert reg.register(src, src).source_points.shape == (128, 3)
+    reg.update(preprocess=PreprocessConfig(num_points=192), engine=EngineConfig(refine="icp"))
+    res = reg.register(src, src)
+    assert res.source_points.shape == (192, 3) and res.refined == "icp"
+    assert reg.engine.checkpoint == str(tiny_checkpoint)
+
+
+def test_voxel_grid_in_metres(tiny_checkpoint):
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu",
+                                    preprocess=PreprocessConfig(voxel_size=2.0, num_points=64))
+    with pytest.raises(ValueError, match="after the 2.0 m voxel grid"):
+        reg.register(scene(1000), scene(1000))
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="no weights shipped yet")
+def test_shipped_weights_load_with_their_metadata():
+    reg = Registrar.from_checkpoint(device="cpu")
+    assert reg.checkpoint_path == str(DEFAULT_WEIGHTS)
+    assert reg.metadata["step"] > 0 and "validation" in reg.metadata

@@ -1,0 +1,159 @@
+"""The CEGC network: weighted SVD, gradients, equivariance, shapes, devices."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cegc_ros.model import CEGC, ModelConfig
+from cegc_ros.model.losses import LossConfig, cegc_loss, overlap_labels
+from cegc_ros.model.svd import weighted_kabsch
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def small_cfg(**kw) -> ModelConfig:
+    return ModelConfig(agnn_dims=(16, 16, 32), feat_dim=32, attn_heads=2, attn_layers=1,
+                       cams_dim=8, hoce_topk=4, chunk_rows=64, **kw)
+
+
+def inputs(n: int, m: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    src = torch.rand(1, n, 3, generator=g) - 0.5
+    tgt = torch.rand(1, m, 3, generator=g) - 0.5
+    nrm_s = torch.nn.functional.normalize(torch.randn(1, n, 3, generator=g), dim=-1)
+    nrm_t = torch.nn.functional.normalize(torch.randn(1, m, 3, generator=g), dim=-1)
+    return src, tgt, nrm_s, nrm_t, torch.rand(1, n, 33, generator=g), torch.rand(1, m, 33, generator=g)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_weighted_svd_recovers_random_rigid_transform_with_any_weights(seed):
+    rng = np.random.default_rng(seed)
+    R = random_rotation(rng)
+    t = rng.uniform(-2, 2, 3)
+    src = rng.normal(size=(50, 3))
+    tgt = src @ R.T + t
+    w = rng.uniform(0.01, 1.0, 50)
+    R_est, t_est, valid = weighted_kabsch(torch.tensor(src[None]), torch.tensor(tgt[None]), torch.tensor(w[None]))
+    assert bool(valid[0])
+    assert np.abs(R_est[0].double().numpy() - R).max() < 1e-4
+    assert np.abs(t_est[0].double().numpy() - t).max() < 1e-4
+
+
+def test_weighted_svd_returns_a_rotation_not_a_reflection():
+    rng = np.random.default_rng(7)
+    src = rng.normal(size=(40, 3))
+    reflect = np.diag([1.0, 1.0, -1.0])
+    tgt = src @ reflect.T                      # a mirror image: the best rotation is not det -1
+    R, _, valid = weighted_kabsch(torch.tensor(src[None]), torch.tensor(tgt[None]), torch.ones(1, 40))
+    assert bool(valid[0])
+    assert torch.det(R[0]).item() == pytest.approx(1.0, abs=1e-5)
+    assert torch.allclose(R[0] @ R[0].T, torch.eye(3), atol=1e-5)
+
+
+def test_weighted_svd_degenerate_inputs_are_invalid_and_finite():
+    rng = np.random.default_rng(3)
+    src = torch.tensor(rng.normal(size=(1, 30, 3)))
+    R, t, valid = weighted_kabsch(src, src + 1.0, torch.zeros(1, 30))
+    assert not bool(valid[0]) and torch.isfinite(R).all() and torch.isfinite(t).all()
+    line = torch.linspace(0, 1, 30).view(1, 30, 1) * torch.tensor([[[1.0, 2.0, 3.0]]])
+    R, t, valid = weighted_kabsch(line, line + 0.5, torch.ones(1, 30))
+    assert not bool(valid[0]) and torch.isfinite(R).all() and torch.isfinite(t).all()
+    assert torch.allclose(R[0], torch.eye(3))
+
+
+@pytest.mark.parametrize("variant", ["ri", "paper"])
+def test_gradients_flow_to_every_branch_and_stay_finite(variant):
+    torch.manual_seed(0)
+    model = CEGC(small_cfg(variant=variant)).train()
+    src, tgt, ns, nt, ds, dt = inputs(96, 80)
+    out = model(src, tgt, ns, nt, ds, dt)
+    loss, parts = cegc_loss(out, src, tgt, torch.eye(3)[None], torch.zeros(1, 3), LossConfig(),
+                            model.cfg.match_temperature)
+    loss.backward()
+    assert np.isfinite(parts["loss"])
+    for name in ["agnn", "context", "hoce", "cams"]:
+        grads = [p.grad for n, p in model.named_parameters() if n.startswith(name) and p.grad is not None]
+        assert grads, f"no gradient reached {name}"
+        assert all(torch.isfinite(g).all() for g in grads)
+        assert any(g.abs().sum() > 0 for g in grads), f"all-zero gradient in {name}"
+
+
+def test_overlap_scores_are_permutation_equivariant():
+    torch.manual_seed(1)
+    model = CEGC(small_cfg()).eval()
+    src, tgt, ns, nt, ds, dt = inputs(128, 112, seed=2)
+    perm_s, perm_t = torch.randperm(128), torch.randperm(112)
+    with torch.no_grad():
+        a = model(src, tgt, ns, nt, ds, dt)
+        b = model(src[:, perm_s], tgt[:, perm_t], ns[:, perm_s], nt[:, perm_t], ds[:, perm_s], dt[:, perm_t])
+    assert torch.allclose(a.src_overlap_logits[:, perm_s], b.src_overlap_logits, atol=1e-4)
+    assert torch.allclose(a.tgt_overlap_logits[:, perm_t], b.tgt_overlap_logits, atol=1e-4)
+    assert torch.allclose(a.R, b.R, atol=1e-3)
+
+
+@pytest.mark.parametrize("n,m", [(64, 64), (64, 200), (300, 97), (1024, 1024), (4096, 4096)])
+def test_forward_any_point_count(n, m):
+    torch.manual_seed(0)
+    model = CEGC(small_cfg()).eval()
+    with torch.no_grad():
+        out = model(*inputs(n, m))
+    assert out.src_overlap_logits.shape == (1, n) and out.tgt_overlap_logits.shape == (1, m)
+    n1, n2 = out.src_idx.shape[1], out.tgt_idx.shape[1]
+    assert n1 == n // 2 and n2 == m // 2                    # top-N = floor(0.5 x points)
+    assert out.scores.shape == (1, n1, n2)
+    assert out.match.shape == (1, n1) and int(out.match.max()) < m
+    assert torch.isfinite(out.R).all() and torch.isfinite(out.t).all()
+    assert torch.allclose(out.R[0] @ out.R[0].T, torch.eye(3), atol=1e-4)
+
+
+def test_cams_chunking_does_not_change_scores():
+    torch.manual_seed(0)
+    cfg = small_cfg()
+    model = CEGC(cfg).eval()
+    x = inputs(150, 130)
+    with torch.no_grad():
+        a = model(*x)
+        model.cams.chunk_rows = 7
+        b = model(*x)
+    assert torch.allclose(a.scores, b.scores, atol=1e-5)
+    assert torch.allclose(a.conf_logits, b.conf_logits, atol=1e-5)
+
+
+def test_overlap_labels_from_ground_truth():
+    src = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [5.0, 5, 5]]])
+    R = torch.eye(3)[None]
+    t = torch.tensor([[0.0, 0.0, 1.0]])
+    tgt = torch.tensor([[[0.0, 0, 1.0], [1.0, 0, 1.01], [-3.0, 0, 0]]])
+    lx, ly = overlap_labels(src, tgt, R, t, torch.tensor([0.05]))
+    assert lx.tolist() == [[1.0, 1.0, 0.0]]
+    assert ly.tolist() == [[1.0, 1.0, 0.0]]
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="variant"):
+        ModelConfig(variant="nope")
+    with pytest.raises(ValueError, match="overlap_ratio"):
+        ModelConfig(overlap_ratio=0.0)
+    assert ModelConfig.from_dict(ModelConfig().to_dict()) == ModelConfig()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_cpu_and_cuda_agree():
+    torch.manual_seed(0)
+    model = CEGC(small_cfg()).eval()
+    x = inputs(256, 256)
+    with torch.no_grad():
+        a = model(*x)
+        b = model.cuda()(*(v.cuda() for v in x))
+    assert torch.allclose(a.src_overlap_logits, b.src_overlap_logits.cpu(), atol=1e-3)
+    assert torch.allclose(a.R, b.R.cpu(), atol=1e-3)
