@@ -9,7 +9,7 @@ features.py, hoce.py and cams.py):
 
 1. ``variant="ri"`` (default) feeds rotation-invariant encodings instead of raw coordinates:
    AGNN edges are point-pair features from estimated normals plus a per-point FPFH descriptor,
-   and CAMS's spatial descriptor uses distances to the centroid. Reason: the paper's encodings
+   and CAMS's spatial descriptor uses distances to the centroid and FPFH distances. Reason: the paper's encodings
    are rotation-variant, so the network must learn rotation equivariance from data over
    +-45 deg on three axes, which a CPU budget cannot pay for (shared/notes/TRAINING_FACTS.md:
    0% recall after 40 CPU-minutes). ``variant="paper"`` keeps the paper's encodings.
@@ -90,7 +90,9 @@ class CEGC(nn.Module):
         ix = top_n_indices(lx, self.cfg.overlap_ratio)                   # (B, n1)
         iy = top_n_indices(ly, self.cfg.overlap_ratio)                   # (B, n2)
         ox, oy = _take(src, ix), _take(tgt, iy)
-        scores, conf_logits = self.cams(ox, oy, _take(fx, ix), _take(fy, iy))
+        dx = _take(src_desc, ix) if src_desc is not None else None
+        dy = _take(tgt_desc, iy) if tgt_desc is not None else None
+        scores, conf_logits = self.cams(ox, oy, _take(fx, ix), _take(fy, iy), dx, dy)
         weights = torch.sigmoid(conf_logits)                             # (B, n1)
         best = scores.argmax(dim=-1)                                     # (B, n1) into oy
         if self.training:

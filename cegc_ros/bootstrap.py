@@ -1,0 +1,334 @@
+"""Set up ``.venv/`` on first use, then run a job in it: ``python3 -m cegc_ros.bootstrap JOB``.
+
+Jobs:
+    demo [ARGS]      run ``cegc-demo`` (replays the bundled pairs, prints the paper's metrics)
+    test [ARGS]      run ``python -m pytest -q test`` (ARGS go to pytest: ``-k pose``,
+                     ``test/test_pose.py``)
+    setup            only install; print nothing else
+    env              print ``export`` lines: ``eval "$(python3 -m cegc_ros.bootstrap env)"``
+    run CMD [ARGS]   run any command in the environment (``run register_node --help``)
+
+Standard library only: this runs on a bare ``python3 >= 3.10`` before anything is installed.
+
+What it does, each step skipped when already done:
+1. System libraries: ``libusb-1.0-0`` (Open3D cannot be imported without it) is installed with
+   apt-get when running as root, otherwise the bootstrap stops with one line naming the package.
+   ``libjemalloc2`` is installed the same way but optionally; when present it is preloaded into
+   the job (``LD_PRELOAD``, ``MALLOC_CONF=dirty_decay_ms:-1``), which roughly halves the time
+   of large torch temporaries here. ``CEGC_NO_JEMALLOC=1`` turns that off.
+2. ``.venv/``: created with this interpreter; ``pip install -r requirements.txt`` then a regular
+   (not editable) ``pip install .`` of this repository, because only a regular install puts
+   ``share/cegc_ros`` (ament index marker, package.xml, params, weights) into the prefix where
+   ``ament_index_python`` finds it. A stamp in ``.venv/`` records hashes of what each step
+   installed: requirements are reinstalled only when ``requirements.txt`` changes, the package
+   (seconds, ``--no-deps``) whenever its sources, params or weights change. Repeat runs with
+   nothing changed do not start pip at all.
+3. The job's environment: ``.venv/bin`` first on PATH, the venv prepended to
+   ``AMENT_PREFIX_PATH``, DDS kept on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``)
+   and a random ``ROS_DOMAIN_ID`` in 1..100 unless one is set, so parallel runs do not talk to
+   each other.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes.util
+import hashlib
+import json
+import os
+import random
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VENV = ROOT / ".venv"
+STAMP = VENV / ".cegc_bootstrap.json"
+LOCK = VENV / ".cegc_bootstrap.lock"
+
+#: What ``pip install .`` reads: setup.py's inputs. Everything else in the repo is ignored.
+PACKAGE_INPUTS = ("setup.py", "setup.cfg", "package.xml", "resource", "params", "cegc_ros",
+                  "msg_adapters")
+_IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", ".pytest_cache")
+
+REQUIRED_LIBS = {"libusb-1.0-0": "usb-1.0"}  # Debian package -> ctypes.util library name
+OPTIONAL_LIBS = {"libjemalloc2": "jemalloc"}
+JEMALLOC_SONAME = "libjemalloc.so.2"
+
+USAGE = __doc__.split("\n\n")[1]
+
+
+class BootstrapError(Exception):
+    """A step failed; the message is the one line shown to the user."""
+
+
+def log(message: str) -> None:
+    print(f"[bootstrap] {message}", file=sys.stderr, flush=True)
+
+
+# --- system libraries --------------------------------------------------------------------
+
+
+def _missing(libs: dict[str, str]) -> list[str]:
+    return [pkg for pkg, name in libs.items() if ctypes.util.find_library(name) is None]
+
+
+def _apt_install(packages: list[str]) -> bool:
+    """apt-get install ``packages`` when root with apt-get; True when it ran and succeeded."""
+    if not packages or os.geteuid() != 0 or shutil.which("apt-get") is None:
+        return False
+    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+    log(f"installing system packages: {' '.join(packages)}")
+    for cmd in (["apt-get", "update", "-qq"],
+                ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *packages]):
+        if subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL).returncode != 0:
+            return False
+    return True
+
+
+def ensure_system_libraries() -> None:
+    """Install what is missing; raise BootstrapError naming a required package still missing."""
+    required, optional = _missing(REQUIRED_LIBS), _missing(OPTIONAL_LIBS)
+    if os.environ.get("CEGC_NO_JEMALLOC"):
+        optional = []
+    if required or optional:
+        # One apt run for both; if the optional one breaks it, retry without it.
+        if not _apt_install(required + optional) and optional:
+            _apt_install(required)
+    still = _missing(REQUIRED_LIBS)
+    if still:
+        raise BootstrapError(
+            f"missing system package {' '.join(still)} (Open3D needs libusb-1.0.so.0): "
+            f"install it with `sudo apt-get install {' '.join(still)}` and run again")
+
+
+def jemalloc_path() -> str | None:
+    """Full path of libjemalloc.so.2 from the linker cache, or None."""
+    if ctypes.util.find_library("jemalloc") is None:
+        return None
+    try:
+        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True,
+                             check=False).stdout
+    except OSError:
+        out = ""
+    for line in out.splitlines():
+        name, _, path = line.strip().partition(" => ")
+        if name.startswith(JEMALLOC_SONAME) and Path(path).is_file():
+            return path
+    return JEMALLOC_SONAME  # the dynamic linker also resolves a bare soname
+
+
+# --- virtual environment -----------------------------------------------------------------
+
+
+def venv_python() -> Path:
+    return VENV / "bin" / "python"
+
+
+def _sha256_files(paths: list[Path]) -> str:
+    digest = hashlib.sha256()
+    for path in paths:
+        digest.update(str(path.relative_to(ROOT)).encode() + b"\0")
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+        digest.update(b"\0")
+    return digest.hexdigest()
+
+
+def requirements_hash() -> str:
+    python = f"{sys.version_info.major}.{sys.version_info.minor}"
+    return python + ":" + _sha256_files([ROOT / "requirements.txt"])
+
+
+def package_hash() -> str:
+    files: list[Path] = []
+    for name in PACKAGE_INPUTS:
+        path = ROOT / name
+        if path.is_file():
+            files.append(path)
+        elif path.is_dir():
+            files.extend(p for p in sorted(path.rglob("*"))
+                         if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc")
+    return _sha256_files(files)
+
+
+def _read_stamp() -> dict[str, str]:
+    try:
+        return json.loads(STAMP.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_stamp(stamp: dict[str, str]) -> None:
+    tmp = STAMP.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stamp, indent=1) + "\n")
+    tmp.replace(STAMP)
+
+
+@contextlib.contextmanager
+def _locked() -> Iterator[None]:
+    """Serialise concurrent bootstraps of the same checkout (fcntl lock on a file in .venv)."""
+    import fcntl
+
+    LOCK.parent.mkdir(parents=True, exist_ok=True)
+    with LOCK.open("w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _pip(*args: str) -> None:
+    cmd = [str(venv_python()), "-m", "pip", "--disable-pip-version-check", "--no-input", *args]
+    log(" ".join(shlex.quote(a) for a in cmd[1:]))
+    if subprocess.run(cmd, cwd=ROOT, stdin=subprocess.DEVNULL).returncode != 0:
+        raise BootstrapError(f"pip failed: {' '.join(args)}")
+
+
+def _create_venv() -> None:
+    log(f"creating {VENV} with {sys.executable} (Python {sys.version.split()[0]})")
+    try:
+        import ensurepip  # noqa: F401  (Debian ships it in python3-venv)
+    except ModuleNotFoundError as err:
+        pkg = f"python3.{sys.version_info.minor}-venv"
+        if not _apt_install([pkg]):
+            raise BootstrapError(f"missing system package {pkg} (needed to create .venv): "
+                                 f"install it with `sudo apt-get install {pkg}`") from err
+    # The directory may already exist, holding only the lock file: venv fills it in.
+    if subprocess.run([sys.executable, "-m", "venv", str(VENV)],
+                      stdin=subprocess.DEVNULL).returncode != 0:
+        raise BootstrapError(f"could not create {VENV}: `{sys.executable} -m venv` failed")
+
+
+def install_package() -> None:
+    """``pip install --no-deps .`` from a clean copy of setup.py's inputs.
+
+    Building from a copy keeps build/ and *.egg-info out of the checkout and stops a stale
+    build/lib from carrying deleted modules into the install.
+    """
+    with tempfile.TemporaryDirectory(prefix="cegc_ros-install-") as tmp:
+        src = Path(tmp) / "cegc_ros"
+        src.mkdir()
+        for name in PACKAGE_INPUTS:
+            path = ROOT / name
+            if path.is_dir():
+                shutil.copytree(path, src / name, ignore=_IGNORE)
+            elif path.is_file():
+                shutil.copy2(path, src / name)
+        _pip("install", "--no-deps", "--no-build-isolation", "--force-reinstall",
+             "--progress-bar", "off", str(src))
+
+
+def ensure_venv() -> None:
+    """Create/refresh .venv as needed (see the module docstring)."""
+    if sys.version_info < (3, 10):  # noqa: UP036  (this file must run on any python3)
+        raise BootstrapError(f"Python >= 3.10 is needed, this is {sys.version.split()[0]}")
+    if not (ROOT / "requirements.txt").is_file():
+        raise BootstrapError(f"{ROOT / 'requirements.txt'} is missing: run from a full checkout")
+    with _locked():
+        if not venv_python().exists():
+            _create_venv()
+        stamp = _read_stamp()
+        req = requirements_hash()
+        if stamp.get("requirements") != req:
+            _pip("install", "--progress-bar", "off", "-r", str(ROOT / "requirements.txt"))
+            stamp = {"requirements": req}
+            _write_stamp(stamp)
+        pkg = package_hash()
+        marker = VENV / "share" / "ament_index" / "resource_index" / "packages" / "cegc_ros"
+        if stamp.get("package") != pkg or not marker.is_file():  # also if uninstalled by hand
+            install_package()
+            stamp["package"] = pkg
+            _write_stamp(stamp)
+
+
+# --- the job's environment ---------------------------------------------------------------
+
+
+def job_environment(base: dict[str, str] | None = None, *,
+                    localhost: bool = True) -> dict[str, str]:
+    """The environment for a job in .venv (``base`` defaults to os.environ)."""
+    env = dict(os.environ if base is None else base)
+    prefix = str(VENV)
+    env["VIRTUAL_ENV"] = prefix
+    env.pop("PYTHONHOME", None)
+    env["PATH"] = os.pathsep.join([str(VENV / "bin")] + [
+        p for p in env.get("PATH", "").split(os.pathsep) if p and p != str(VENV / "bin")])
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join([prefix] + [
+        p for p in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p and p != prefix])
+    if localhost:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    else:
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if not env.get("ROS_DOMAIN_ID"):
+        env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
+    env["CEGC_ROS_BOOTSTRAP"] = "1"
+    jemalloc = None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path()
+    if jemalloc and jemalloc not in env.get("LD_PRELOAD", "").split(":"):
+        env["LD_PRELOAD"] = ":".join(p for p in (jemalloc, env.get("LD_PRELOAD", "")) if p)
+        env.setdefault("MALLOC_CONF", "dirty_decay_ms:-1")
+    return env
+
+
+def _exec(argv: list[str], env: dict[str, str]) -> None:
+    """Replace this process with ``argv`` run from the repo root (exit code passes through)."""
+    os.chdir(ROOT)
+    executable = argv[0] if os.sep in argv[0] else shutil.which(argv[0], path=env["PATH"])
+    if executable is None:
+        raise BootstrapError(f"command not found in .venv or PATH: {argv[0]}")
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(executable, argv, env)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(__doc__.split("\n\n")[0] + "\n\n" + USAGE)
+        return 0 if args else 2
+    job, extra = args[0], args[1:]
+    if job not in ("demo", "test", "setup", "env", "run"):
+        print(f"unknown job {job!r}\n\n{USAGE}", file=sys.stderr)
+        return 2
+    if job == "run" and not extra:
+        print("run needs a command, e.g. `run register_node --help`", file=sys.stderr)
+        return 2
+    try:
+        ensure_system_libraries()
+        ensure_venv()
+        env = job_environment(localhost=job == "test")
+        if job == "setup":
+            return 0
+        if job == "env":
+            keys = ("VIRTUAL_ENV", "PATH", "AMENT_PREFIX_PATH", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+                    "ROS_DOMAIN_ID", "LD_PRELOAD", "MALLOC_CONF")
+            for key in keys:
+                if key in env:
+                    print(f"export {key}={shlex.quote(env[key])}")
+            return 0
+        py = str(venv_python())
+        if job == "test":
+            log(f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']} "
+                f"ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+            # Given test paths replace the default `test` directory.
+            paths = [a for a in extra if not a.startswith("-")
+                     and ((ROOT / a.split("::")[0]).exists() or "::" in a)]
+            _exec([py, "-m", "pytest", "-q", *([] if paths else ["test"]), *extra], env)
+        elif job == "demo":
+            _exec([str(VENV / "bin" / "cegc-demo"), *extra], env)
+        else:
+            _exec(extra, env)
+    except BootstrapError as err:
+        print(f"cegc_ros bootstrap: {err}", file=sys.stderr)
+        return 1
+    return 0  # not reached: _exec replaces the process
+
+
+if __name__ == "__main__":
+    sys.exit(main())
