@@ -43,6 +43,15 @@ class EngineConfig:
         dynamic=False))
     device: str = field(default="auto", metadata=_meta(
         "Torch device: 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.", dynamic=False))
+    solver: str = field(default="robust", metadata=_meta(
+        "Pose from the network's correspondences: 'svd' (the paper's confidence-weighted SVD over "
+        "all argmax matches) or 'robust' (confidence-guided hypothesis testing, then weighted SVD "
+        "on the explained matches; see cegc_ros/solver.py).", choices=("svd", "robust")))
+    robust_inlier_factor: float = field(default=3.0, metadata=_meta(
+        "Inlier residual of the robust solver, in multiples of the target's median point spacing.",
+        0.5, 20.0))
+    robust_hypotheses: int = field(default=2000, metadata=_meta(
+        "Hypotheses drawn by the robust solver.", 10, 100000))
     refine: str = field(default="none", metadata=_meta(
         "Refinement after the network: 'none' or 'icp' (Open3D point-to-plane on the "
         "voxelized clouds, started from the network's estimate).", choices=("none", "icp")))
@@ -53,6 +62,74 @@ class EngineConfig:
         "ICP iterations.", 1, 1000))
     threads: int = field(default=0, metadata=_meta(
         "Torch intra-op threads; 0 keeps torch's default.", 0, 256, dynamic=False))
+
+
+@dataclass
+class InputConfig:
+    """How the node subscribes to and accepts its two PointCloud2 inputs."""
+
+    reliable: bool = field(default=False, metadata=_meta(
+        "Subscribe with RELIABLE QoS (use for bag replay); false uses the sensor-data profile "
+        "(BEST_EFFORT, volatile).", dynamic=False))
+    queue_depth: int = field(default=5, metadata=_meta(
+        "History depth (KEEP_LAST) of each input subscription.", 1, 1000, dynamic=False))
+    max_points: int = field(default=1_000_000, metadata=_meta(
+        "Clouds with more finite points are thinned by a uniform stride to at most this many "
+        "before preprocessing, which bounds latency and memory for huge clouds.",
+        1_000, 100_000_000))
+
+
+@dataclass
+class SyncConfig:
+    """Approximate-time pairing of source_cloud with target_cloud by header stamp."""
+
+    slop: float = field(default=0.05, metadata=_meta(
+        "Largest difference of header stamps, in seconds, for two clouds to form a pair.",
+        0.0, 60.0))
+    buffer_size: int = field(default=10, metadata=_meta(
+        "Unpaired clouds kept per input while they wait for a partner; the oldest stamp is "
+        "dropped (and counted) when full.", 1, 1000))
+
+
+@dataclass
+class OutputConfig:
+    """Which results are published."""
+
+    min_fitness: float = field(default=0.0, metadata=_meta(
+        "Poses whose fitness (fraction of source points near the target after alignment) is "
+        "below this are not published; the rejection is logged and counted.", 0.0, 1.0))
+    overlap_threshold: float = field(default=0.5, metadata=_meta(
+        "Points whose overlap confidence is at least this are published on ~/source_overlap "
+        "and ~/target_overlap.", 0.0, 1.0))
+    publish_overlap: bool = field(default=True, metadata=_meta(
+        "Publish the overlap-masked clouds ~/source_overlap and ~/target_overlap."))
+
+
+@dataclass
+class MarkersConfig:
+    """Correspondence lines on ~/markers (target frame, coloured by confidence)."""
+
+    enabled: bool = field(default=True, metadata=_meta(
+        "Publish ~/markers."))
+    max_correspondences: int = field(default=200, metadata=_meta(
+        "Most correspondence lines drawn (the highest weights are kept).", 0, 100_000))
+    min_weight: float = field(default=0.0, metadata=_meta(
+        "Correspondences with a smaller confidence weight are not drawn.", 0.0, 1.0))
+    line_width: float = field(default=0.005, metadata=_meta(
+        "Width of the correspondence lines in metres.", 1e-5, 1.0))
+
+
+@dataclass
+class DiagnosticsConfig:
+    """The /diagnostics status and the throttling of warnings."""
+
+    period: float = field(default=1.0, metadata=_meta(
+        "Seconds between DiagnosticArray messages on /diagnostics.", 0.05, 3600.0, dynamic=False))
+    window: int = field(default=200, metadata=_meta(
+        "Number of recent pairs the latency percentiles are computed over.", 1, 100_000))
+    log_throttle: float = field(default=5.0, metadata=_meta(
+        "Each kind of warning (rejected pair, unpaired cloud, ...) is logged at most once per "
+        "this many seconds, with a count of the ones not logged.", 0.0, 3600.0))
 
 
 def section_items(obj: Any) -> list[tuple[str, Any, dict[str, Any]]]:

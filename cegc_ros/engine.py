@@ -12,6 +12,7 @@ subsample to ``preprocess.num_points`` -> CEGC -> de-normalise to metres -> opti
 from __future__ import annotations
 
 import copy
+import json
 import pickle
 import threading
 import time
@@ -24,6 +25,7 @@ import numpy as np
 
 from .config import EngineConfig, PreprocessConfig
 from .geometry import Normalisation, normalise_pair, prepare_cloud, voxel_downsample
+from .solver import robust_pose
 
 CHECKPOINT_FORMAT = 1
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes.pt"
@@ -60,7 +62,8 @@ def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | Non
         "format": CHECKPOINT_FORMAT,
         "model_config": model.cfg.to_dict(),
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "metadata": dict(metadata or {}),
+        # JSON round trip: only plain types, so that weights_only=True loading accepts it.
+        "metadata": json.loads(json.dumps(dict(metadata or {}), default=str)),
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -234,15 +237,22 @@ class Registrar:
         t2 = time.perf_counter()
         timings["network"] = t2 - t1
 
-        R = out.R[0].double().cpu().numpy()
-        t_n = out.t[0].double().cpu().numpy()
-        valid = bool(out.valid[0])
-        T = norm.to_metres(R, t_n)
-        src_m = (ps.points.astype(np.float64) * norm.scale + norm.c_source)
-        tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
         sel = out.src_idx[0].cpu().numpy()
         corr = np.stack([sel, out.match[0].cpu().numpy()], axis=1).astype(np.int64)
         weights = out.weights[0].float().cpu().numpy()
+        if eng.solver == "robust":
+            spacing_n = _median_spacing(pt.points.astype(np.float64))
+            R, t_n, _, valid = robust_pose(ps.points[corr[:, 0]], pt.points[corr[:, 1]], weights,
+                                           eng.robust_inlier_factor * spacing_n,
+                                           hypotheses=eng.robust_hypotheses, seed=pre.seed)
+        else:
+            R = out.R[0].double().cpu().numpy()
+            t_n = out.t[0].double().cpu().numpy()
+            valid = bool(out.valid[0])
+        timings["solver"] = time.perf_counter() - t2
+        T = norm.to_metres(R, t_n)
+        src_m = (ps.points.astype(np.float64) * norm.scale + norm.c_source)
+        tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
         s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
         t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
         reason = "" if valid else "degenerate correspondences (weights ~0 or collinear points)"

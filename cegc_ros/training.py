@@ -310,6 +310,6 @@ class Trainer:
         import platform
         return {"step": self.step, "elapsed_minutes": round(self.elapsed / 60, 2),
                 "pairs_seen": self.step, "device": self.device, "machine": platform.processor() or platform.machine(),
-                "torch": torch.__version__, "data": "synthetic 7scenes-protocol pairs from procedural rooms",
+                "torch": str(torch.__version__), "data": "synthetic 7scenes-protocol pairs from procedural rooms",
                 "train_config": self.cfg.to_dict(), "validation": val,
                 "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

@@ -151,7 +151,7 @@ def test_runtime_update_applies_to_next_call(tiny_checkpoint):
     reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=128))
     src = scene(1000, seed=3)
     assert reg.register(src, src).source_points.shape == (128, 3)
-    reg.update(preprocess=PreprocessConfig(num_points=192), engine=EngineConfig(refine="icp"))
+    reg.update(preprocess=PreprocessConfig(num_points=192), engine=EngineConfig(refine="icp", solver="svd"))
     res = reg.register(src, src)
     assert res.source_points.shape == (192, 3) and res.refined == "icp"
     assert reg.engine.checkpoint == str(tiny_checkpoint)
