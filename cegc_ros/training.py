@@ -39,6 +39,7 @@ class Stage:
     points: int
     keep_ratio: float = 0.75
     resample_prob: float = 0.0   # probability that the target is an independent resample
+    fragments_prob: float = 0.0  # probability of a two-fragment pair (different views, metres)
 
 
 @dataclass
@@ -114,15 +115,34 @@ class PairSampler:
         self.fragments = fragments
         self.noise_sigma = noise_sigma
         self.with_features = with_features
+        by_scene: dict[int, list[Any]] = {}
+        for f in fragments:
+            by_scene.setdefault(int(f.scene_seed), []).append(f)
+        self.scenes = [v for v in by_scene.values() if len(v) >= 2]
 
     def sample(self, rng: np.random.Generator, stage: Stage) -> dict[str, torch.Tensor]:
         from .data.protocols import sample_7scenes_pair
+        if self.scenes and rng.random() < stage.fragments_prob:
+            pair = self._fragments_pair(rng)
+            if pair is not None:
+                return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
         frag = self.fragments[rng.integers(len(self.fragments))]
         pair = sample_7scenes_pair(frag.points, rng, num_points=2048, keep_ratio=stage.keep_ratio,
                                    max_angle_deg=stage.max_angle_deg, max_translation=0.5,
                                    noise_sigma=self.noise_sigma,
                                    resample_target=bool(rng.random() < stage.resample_prob))
         return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
+
+    def _fragments_pair(self, rng: np.random.Generator, min_overlap: float = 0.15) -> Any:
+        """Two different fragments of one scene with at least min_overlap, or None."""
+        from .data.protocols import sample_fragments_pair
+        for _ in range(4):
+            scene = self.scenes[rng.integers(len(self.scenes))]
+            a, b = rng.choice(len(scene), 2, replace=False)
+            pair = sample_fragments_pair(scene[a], scene[b])
+            if pair.info["overlap"] >= min_overlap:
+                return pair
+        return None
 
     def to_tensors(self, source: np.ndarray, target: np.ndarray, T: np.ndarray, points: int,
                    rng: np.random.Generator) -> dict[str, torch.Tensor]:
