@@ -1,0 +1,268 @@
+"""Open3D peers of the engine: ICP from identity, FGR on FPFH, RANSAC on FPFH.
+
+Same style as :class:`cegc_ros.engine.Registrar`: numpy clouds in (metres, own frames),
+a small result out whose ``T_target_source`` maps source points into the target frame
+(``p_t = R p_s + t``). Nothing here knows about ROS.
+
+Every length is scaled to the data, so one setting serves unit-sized synthetic scenes and
+metre-sized real fragments alike::
+
+    extent = the larger of the two clouds' largest bounding-box sides
+    voxel  = voxel_ratio * extent          (or voxel_size when > 0)
+    normal radius = 2 * voxel (30 nn), FPFH radius = 5 * voxel (100 nn)
+    RANSAC: distance 1.5 * voxel, 3-point samples, edge-length (0.9) and distance checkers,
+            100k iterations / 0.999 confidence, mutual filter off (see BaselineConfig)
+    FGR:    Open3D defaults (64 iterations, division factor 1.4, tuple scale 0.95, 1000
+            tuples, tuple test on) with maximum correspondence distance 0.5 * voxel
+    ICP:    point-to-plane from identity, distance icp_distance_ratio * extent, 50 iterations
+    fitness = fraction of the voxelized source within 1.5 * voxel of the target after alignment
+
+The defaults were chosen on the real SUN3D pairs and on the 7Scenes protocol applied to real
+SUN3D fragments (see /work/notes/baselines_real.md for the sweep and its figures).
+Open3D runs on ``threads`` OpenMP threads (pinned with ``open3d.utility.set_max_threads``) and
+its RANSAC and FGR are seeded per call, so results repeat for a given thread count.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+METHODS = ("icp", "fgr", "ransac")
+
+
+class BaselineError(RuntimeError):
+    """A baseline could not run on its input (too few points, unknown method)."""
+
+
+@dataclass
+class BaselineConfig:
+    """Settings of the Open3D baselines; lengths are fractions of the cloud extent or of the voxel."""
+
+    voxel_ratio: float = 0.02       # voxel = ratio * extent (largest bbox side, larger cloud)
+    voxel_size: float = 0.0         # absolute voxel in metres; overrides voxel_ratio when > 0
+    normal_radius_factor: float = 2.0
+    normal_max_nn: int = 30
+    fpfh_radius_factor: float = 5.0
+    fpfh_max_nn: int = 100
+    ransac_distance_factor: float = 1.5
+    ransac_max_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    ransac_mutual_filter: bool = False
+    ransac_edge_length: float = 0.9
+    fgr_distance_factor: float = 0.5
+    fgr_iterations: int = 64
+    fgr_division_factor: float = 1.4
+    fgr_tuple_scale: float = 0.95
+    fgr_max_tuples: int = 1000
+    icp_distance_ratio: float = 0.1  # of the extent: ICP starts from identity, so it needs reach
+    icp_max_iterations: int = 50
+    fitness_factor: float = 1.5      # fitness threshold = factor * voxel
+    min_points: int = 16
+    threads: int = 2
+    seed: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class BaselineResult:
+    """Outcome of one baseline registration."""
+
+    T_target_source: np.ndarray      # (4, 4) float64, maps source points into the target frame
+    valid: bool
+    reason: str                      # why invalid, "" if valid
+    fitness: float                   # in [0, 1], see module docstring
+    method: str
+    voxel_size: float                # metres actually used
+    timings: dict[str, float] = field(default_factory=dict)  # seconds; "features", "registration", "total"
+
+
+def load_open3d(threads: int = 2):
+    """Import Open3D (heavy: on first use only), quiet its logging and pin its thread count."""
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    if threads > 0:
+        o3d.utility.set_max_threads(int(threads))
+    return o3d
+
+
+def _clean(xyz: np.ndarray, name: str, min_points: int) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"{name} cloud must have shape (N, 3), got {xyz.shape}")
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) < min_points:
+        raise ValueError(f"{name} cloud has {len(xyz)} finite points, need at least {min_points}")
+    return xyz
+
+
+def scale_of(source_xyz: np.ndarray, target_xyz: np.ndarray) -> float:
+    """Extent of a pair: the larger of the two clouds' largest bounding-box sides, (N, 3), (M, 3).
+
+    Each cloud is measured in its own frame, so the extent does not depend on the unknown motion.
+    """
+    return float(max(np.max(c.max(axis=0) - c.min(axis=0)) for c in (source_xyz, target_xyz)))
+
+
+def voxel_for(source_xyz: np.ndarray, target_xyz: np.ndarray, config: BaselineConfig) -> float:
+    if config.voxel_size > 0:
+        return float(config.voxel_size)
+    extent = scale_of(source_xyz, target_xyz)
+    if not extent > 0:
+        raise ValueError("clouds have zero extent")
+    return config.voxel_ratio * extent
+
+
+class _Prepared:
+    """Voxelized clouds with normals (and FPFH when asked) of one pair."""
+
+    def __init__(self, o3d, source_xyz, target_xyz, voxel: float, config: BaselineConfig,
+                 fpfh: bool) -> None:
+        self.voxel = voxel
+        reg = o3d.pipelines.registration
+        normal = o3d.geometry.KDTreeSearchParamHybrid(
+            radius=config.normal_radius_factor * voxel, max_nn=config.normal_max_nn)
+        feat = o3d.geometry.KDTreeSearchParamHybrid(
+            radius=config.fpfh_radius_factor * voxel, max_nn=config.fpfh_max_nn)
+        self.clouds = []
+        self.features = []
+        for xyz in (source_xyz, target_xyz):
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+            pc = pc.voxel_down_sample(voxel)
+            pc.estimate_normals(normal)
+            self.clouds.append(pc)
+            if fpfh:
+                self.features.append(reg.compute_fpfh_feature(pc, feat))
+        self.source, self.target = self.clouds
+        for name, pc in (("source", self.source), ("target", self.target)):
+            if len(pc.points) < config.min_points:
+                raise ValueError(f"{name} cloud has {len(pc.points)} points after a {voxel:.4g} voxel "
+                                 f"grid, need at least {config.min_points}")
+
+
+def _finish(o3d, prep: _Prepared, T: np.ndarray, method: str, config: BaselineConfig,
+            t0: float, t_feat: float) -> BaselineResult:
+    T = np.asarray(T, dtype=np.float64).copy()
+    t_reg = time.perf_counter()
+    reason = ""
+    fitness = 0.0
+    if not np.all(np.isfinite(T)):
+        reason = "non-finite transform"
+    elif abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-3:
+        reason = "transform is not a rotation"
+    else:
+        ev = o3d.pipelines.registration.evaluate_registration(
+            prep.source, prep.target, config.fitness_factor * prep.voxel, T)
+        fitness = float(ev.fitness)
+        if fitness <= 0.0:
+            reason = "no source point near the target after alignment"
+    done = time.perf_counter()
+    return BaselineResult(
+        T_target_source=T, valid=not reason, reason=reason, fitness=fitness, method=method,
+        voxel_size=prep.voxel,
+        timings={"features": t_feat - t0, "registration": t_reg - t_feat, "total": done - t0},
+    )
+
+
+def register_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                 config: BaselineConfig | None = None) -> BaselineResult:
+    """Open3D point-to-plane ICP started from the identity (source (N, 3), target (M, 3))."""
+    config = config or BaselineConfig()
+    o3d = load_open3d(config.threads)
+    src = _clean(source_xyz, "source", config.min_points)
+    tgt = _clean(target_xyz, "target", config.min_points)
+    t0 = time.perf_counter()
+    voxel = voxel_for(src, tgt, config)
+    prep = _Prepared(o3d, src, tgt, voxel, config, fpfh=False)
+    t_feat = time.perf_counter()
+    reg = o3d.pipelines.registration
+    res = reg.registration_icp(
+        prep.source, prep.target, config.icp_distance_ratio * scale_of(src, tgt), np.eye(4),
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations))
+    return _finish(o3d, prep, res.transformation, "icp", config, t0, t_feat)
+
+
+def register_fgr(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                 config: BaselineConfig | None = None) -> BaselineResult:
+    """Open3D Fast Global Registration on FPFH features (source (N, 3), target (M, 3))."""
+    config = config or BaselineConfig()
+    o3d = load_open3d(config.threads)
+    src = _clean(source_xyz, "source", config.min_points)
+    tgt = _clean(target_xyz, "target", config.min_points)
+    t0 = time.perf_counter()
+    prep = _Prepared(o3d, src, tgt, voxel_for(src, tgt, config), config, fpfh=True)
+    t_feat = time.perf_counter()
+    reg = o3d.pipelines.registration
+    option = reg.FastGlobalRegistrationOption(
+        division_factor=config.fgr_division_factor,
+        maximum_correspondence_distance=config.fgr_distance_factor * prep.voxel,
+        iteration_number=config.fgr_iterations, tuple_scale=config.fgr_tuple_scale,
+        maximum_tuple_count=config.fgr_max_tuples, tuple_test=True)
+    o3d.utility.random.seed(config.seed)
+    res = reg.registration_fgr_based_on_feature_matching(
+        prep.source, prep.target, prep.features[0], prep.features[1], option)
+    return _finish(o3d, prep, res.transformation, "fgr", config, t0, t_feat)
+
+
+def register_ransac(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                    config: BaselineConfig | None = None) -> BaselineResult:
+    """Open3D RANSAC on FPFH feature matches (source (N, 3), target (M, 3)), seeded."""
+    config = config or BaselineConfig()
+    o3d = load_open3d(config.threads)
+    src = _clean(source_xyz, "source", config.min_points)
+    tgt = _clean(target_xyz, "target", config.min_points)
+    t0 = time.perf_counter()
+    prep = _Prepared(o3d, src, tgt, voxel_for(src, tgt, config), config, fpfh=True)
+    t_feat = time.perf_counter()
+    reg = o3d.pipelines.registration
+    distance = config.ransac_distance_factor * prep.voxel
+    o3d.utility.random.seed(config.seed)
+    res = reg.registration_ransac_based_on_feature_matching(
+        prep.source, prep.target, prep.features[0], prep.features[1], config.ransac_mutual_filter,
+        distance, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(config.ransac_edge_length),
+         reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence))
+    return _finish(o3d, prep, res.transformation, "ransac", config, t0, t_feat)
+
+
+_REGISTRY: dict[str, Callable[..., BaselineResult]] = {
+    "icp": register_icp, "fgr": register_fgr, "ransac": register_ransac}
+
+
+def register(method: str, source_xyz: np.ndarray, target_xyz: np.ndarray,
+             config: BaselineConfig | None = None) -> BaselineResult:
+    """Run the baseline named ``method`` (one of :data:`METHODS`)."""
+    try:
+        fn = _REGISTRY[method]
+    except KeyError:
+        raise BaselineError(f"unknown baseline {method!r}; expected one of {', '.join(METHODS)}") from None
+    return fn(source_xyz, target_xyz, config)
+
+
+def describe(config: BaselineConfig | None = None) -> list[str]:
+    """One line per baseline stating its settings (for reports)."""
+    c = config or BaselineConfig()
+    voxel = (f"voxel {c.voxel_size:g} m" if c.voxel_size > 0
+             else f"voxel {c.voxel_ratio:g} x extent (largest bbox side)")
+    feats = (f"{voxel}; normals r={c.normal_radius_factor:g}v/{c.normal_max_nn}nn; "
+             f"FPFH r={c.fpfh_radius_factor:g}v/{c.fpfh_max_nn}nn")
+    return [
+        f"icp: Open3D point-to-plane ICP from identity; {voxel}; max distance "
+        f"{c.icp_distance_ratio:g} x extent; {c.icp_max_iterations} iterations",
+        f"fgr: Open3D FGR on FPFH; {feats}; max correspondence distance {c.fgr_distance_factor:g}v; "
+        f"{c.fgr_iterations} iterations, division factor {c.fgr_division_factor:g}, tuple scale "
+        f"{c.fgr_tuple_scale:g}, {c.fgr_max_tuples} tuples, tuple test on",
+        f"ransac: Open3D RANSAC on FPFH; {feats}; distance {c.ransac_distance_factor:g}v; 3-point "
+        f"samples; edge-length {c.ransac_edge_length:g} + distance checkers; "
+        f"{c.ransac_max_iterations} iterations / {c.ransac_confidence:g} confidence; mutual filter "
+        f"{'on' if c.ransac_mutual_filter else 'off'}; seed {c.seed}",
+        f"all: {c.threads} Open3D threads; fitness within {c.fitness_factor:g}v",
+    ]

@@ -1,0 +1,124 @@
+"""Shared helpers of the node tests: DDS isolation, cloud messages and an output probe.
+
+Importing this module pins the process to a LOCALHOST-only DDS domain of its own (derived
+from the pid) before anything calls ``rclpy.init``; child processes get the same environment
+through :func:`ros_env`.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+DOMAIN_ID = 1 + os.getpid() % 100
+os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.pop("ROS_LOCALHOST_ONLY", None)
+if sys.prefix not in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+    os.environ["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        p for p in (sys.prefix, os.environ.get("AMENT_PREFIX_PATH", "")) if p)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def ros_env(**extra: str) -> dict[str, str]:
+    """The environment for a child process: same DDS domain, repo importable."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH", "")) if p)
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra)
+    return env
+
+
+def cloud(xyz: np.ndarray, frame: str, stamp_ns: int) -> Any:
+    """A PointCloud2 of float32 x, y, z."""
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    from msg_adapters.point_cloud2 import xyz_to_cloud
+
+    header = Header(stamp=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=frame)
+    return xyz_to_cloud(np.asarray(xyz, np.float32), header)
+
+
+def stamp_of(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+
+
+def make_probe(node_name: str = "register_node", namespace: str = "/",
+               context: Any = None) -> Any:
+    """A node that publishes the two inputs and records every output of the node under test."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    base = namespace.rstrip("/")
+
+    class Probe(Node):
+        def __init__(self) -> None:
+            super().__init__("cegc_test_probe", context=context)
+            qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+            self.pub = {s: self.create_publisher(PointCloud2, f"{base}/{s}_cloud", qos)
+                        for s in ("source", "target")}
+            self.lock = threading.Lock()
+            self.got: dict[str, list[Any]] = {}
+            outputs = {"pose": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
+                       "source_overlap": PointCloud2, "target_overlap": PointCloud2,
+                       "markers": MarkerArray}
+            for name, kind in outputs.items():
+                self.got[name] = []
+                self.create_subscription(kind, f"{base}/{node_name}/{name}",
+                                         self._keep(name), 50)
+            self.got["diagnostics"] = []
+            self.create_subscription(DiagnosticArray, "/diagnostics", self._keep("diagnostics"),
+                                     50)
+
+        def _keep(self, name: str) -> Callable[[Any], None]:
+            def cb(msg: Any) -> None:
+                with self.lock:
+                    self.got[name].append(msg)
+            return cb
+
+        def outputs(self, name: str) -> list[Any]:
+            with self.lock:
+                return list(self.got[name])
+
+        def by_stamp(self, name: str) -> dict[int, Any]:
+            return {stamp_of(m): m for m in self.outputs(name)}
+
+        def send(self, source: Any, target: Any) -> None:
+            self.pub["source"].publish(source)
+            self.pub["target"].publish(target)
+
+        def connected(self) -> bool:
+            return all(p.get_subscription_count() > 0 for p in self.pub.values()) and \
+                self.count_publishers(f"{base}/{node_name}/pose") > 0
+
+        def diagnostics(self) -> dict[str, str]:
+            """Key-values of the newest diagnostics status of the node under test."""
+            for arr in reversed(self.outputs("diagnostics")):
+                for st in arr.status:
+                    if st.name.startswith(node_name):
+                        return {kv.key: kv.value for kv in st.values}
+            return {}
+
+    return Probe()
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float, poll: float = 0.02) -> bool:
+    """Poll ``predicate`` until true or ``timeout`` s pass; returns its last value."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(poll)
+    return bool(predicate())
