@@ -47,17 +47,17 @@ class EngineConfig:
         "Pose from the network's correspondences: 'svd' (the paper's confidence-weighted SVD over "
         "all argmax matches) or 'robust' (confidence-guided hypothesis testing, then weighted SVD "
         "on the explained matches; see cegc_ros/solver.py).", choices=("svd", "robust")))
-    robust_inlier_factor: float = field(default=3.0, metadata=_meta(
+    robust_inlier_factor: float = field(default=2.0, metadata=_meta(
         "Inlier residual of the robust solver, in multiples of the target's median point spacing.",
         0.5, 20.0))
-    robust_hypotheses: int = field(default=2000, metadata=_meta(
+    robust_hypotheses: int = field(default=5000, metadata=_meta(
         "Hypotheses drawn by the robust solver.", 10, 100000))
     refine: str = field(default="none", metadata=_meta(
         "Refinement after the network: 'none' or 'icp' (Open3D point-to-plane on the "
         "voxelized clouds, started from the network's estimate).", choices=("none", "icp")))
     icp_max_distance: float = field(default=0.05, metadata=_meta(
-        "ICP correspondence distance, as a fraction of the scene's normalisation scale "
-        "(largest bounding-box side).", 1e-4, 1.0))
+        "ICP correspondence distance, as a fraction of the normalisation scale (twice the "
+        "larger RMS radius of the two clouds).", 1e-4, 1.0))
     icp_max_iterations: int = field(default=30, metadata=_meta(
         "ICP iterations.", 1, 1000))
     threads: int = field(default=0, metadata=_meta(

@@ -217,12 +217,20 @@ class Trainer:
         self.val_batches = [vs.sample(vrng, val_stage) for _ in range(cfg.data.val_pairs)]
 
     def _resume(self, path: Path) -> None:
+        """Continue from a trainer state (last.pt) or, warm-starting with a fresh optimizer,
+        from an engine checkpoint (best.pt / shipped weights)."""
         state = torch.load(path, map_location=self.device, weights_only=True)
         self.model.load_state_dict(state["state_dict"])
-        self.opt.load_state_dict(state["optimizer"])
-        self.step = int(state["step"])
-        self.elapsed = float(state["elapsed"])
-        self.best = float(state["best"])
+        if "optimizer" in state:
+            self.opt.load_state_dict(state["optimizer"])
+            self.step = int(state["step"])
+            self.elapsed = float(state["elapsed"])
+            self.best = float(state["best"])
+        else:
+            meta = state.get("metadata", {})
+            self.step = int(meta.get("step", 0))
+            self.elapsed = 60.0 * float(meta.get("elapsed_minutes", 0.0))
+            self.best = float(meta.get("validation", {}).get("val_rre_mean", math.inf))
         self.rng = np.random.default_rng([self.cfg.train.seed, self.rank, self.step])
 
     def _save_last(self) -> None:
