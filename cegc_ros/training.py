@@ -26,6 +26,7 @@ import torch
 
 from .engine import save_checkpoint
 from .geometry import normalise_pair, prepare_cloud
+from .metrics import rotation_error_deg
 from .model import CEGC, ModelConfig
 from .model.losses import LossConfig, cegc_loss
 
@@ -50,6 +51,7 @@ class DataConfig:
     val_scenes: int = 4
     val_pairs: int = 24
     val_points: int = 1024
+    val_resample_prob: float = 0.0   # share of validation pairs whose target is an independent resample
     noise_sigma: float = 0.002   # normalised units, on top of the rendered sensor noise
 
 
@@ -99,11 +101,6 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         return {"model": self.model.to_dict(), "loss": asdict(self.loss), "data": asdict(self.data),
                 "train": asdict(self.train)}
-
-
-def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    c = (np.trace(R_gt.T @ R_est) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 class PairSampler:
@@ -213,7 +210,7 @@ class Trainer:
         vs = PairSampler(val_fragments or fragments, 0.0, with_feat)
         vrng = np.random.default_rng(12345)
         final = cfg.train.stages[-1]
-        val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, 0.0)
+        val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob)
         self.val_batches = [vs.sample(vrng, val_stage) for _ in range(cfg.data.val_pairs)]
 
     def _resume(self, path: Path) -> None:
@@ -227,10 +224,11 @@ class Trainer:
             self.elapsed = float(state["elapsed"])
             self.best = float(state["best"])
         else:
+            # Warm start: the validation set may differ from the one the checkpoint was chosen
+            # on, so the best score starts afresh.
             meta = state.get("metadata", {})
             self.step = int(meta.get("step", 0))
             self.elapsed = 60.0 * float(meta.get("elapsed_minutes", 0.0))
-            self.best = float(meta.get("validation", {}).get("val_rre_mean", math.inf))
         self.rng = np.random.default_rng([self.cfg.train.seed, self.rank, self.step])
 
     def _save_last(self) -> None:
@@ -253,7 +251,7 @@ class Trainer:
             out, bb = _forward(self.model, b, self.device)
             _, parts = cegc_loss(out, bb["src"], bb["tgt"], bb["R"], bb["t"], self.cfg.loss,
                                  self.cfg.model.match_temperature)
-            errs.append(rotation_error_deg(out.R[0].cpu().double().numpy(), bb["R"][0].cpu().double().numpy()))
+            errs.append(float(rotation_error_deg(bb["R"][0].cpu().double().numpy(), out.R[0].cpu().double().numpy())))
             terrs.append(float((out.t[0] - bb["t"][0]).norm()))
             accs.append(parts["match_acc"])
         self.model.train()

@@ -1,6 +1,6 @@
 """cegc-demo: the node on a small synthetic bag over DDS, with the Open3D baselines beside it.
 
-    cegc-demo [--pairs 10] [--cache .cache/demo] [--methods cegc,icp,fgr,ransac]
+    cegc-demo [--pairs 10] [--cache .cache/demo] [--methods cegc,cegc+icp,icp,fgr,ransac]
 
 1. writes a deterministic 7Scenes-protocol test bag (``--pairs`` pairs, seed 0) into the cache,
    unless it is there already;
@@ -34,9 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", type=int, default=10, help="pairs in the demo bag (default 10)")
     p.add_argument("--cache", type=Path, default=Path(".cache/demo"),
                    help="where the bag and the report go (default .cache/demo)")
-    p.add_argument("--methods", default="cegc,icp,fgr,ransac",
+    p.add_argument("--methods", default="cegc,cegc+icp,icp,fgr,ransac",
                    help="methods; cegc and cegc+icp run in register_node (default "
-                        "cegc,icp,fgr,ransac)")
+                        "cegc,cegc+icp,icp,fgr,ransac; cegc+icp is the node default)")
     p.add_argument("--params", type=Path, default=None,
                    help="register_node parameter file (default params/register_node.yaml)")
     p.add_argument("--checkpoint", default=None, help="CEGC checkpoint (default: shipped weights)")
