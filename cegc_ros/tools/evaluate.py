@@ -155,13 +155,15 @@ def real_fragment_files(real_dir: str | Path) -> list[Path]:
 
 
 def real_7scenes_pairs(real_dir: str | Path, num_pairs: int = 60, num_points: int = 2048,
-                       seed: int = 0, subsample: int | None = None) -> list[EvalPair]:
+                       seed: int = 0, subsample: int | None = None,
+                       resample_target: bool = False) -> list[EvalPair]:
     """The 7Scenes protocol on real fragments: pair i crops fragment ``i mod F``.
 
     Each pair is ``sample_7scenes_pair(fragment, default_rng([seed, i]), num_points)``: unit
     bounding box, ``num_points`` resampled, two 75% crops, the target moved by <= 45 deg per
     axis and <= 0.5 per axis. With ``subsample`` each cloud is then independently thinned to that
-    many points (seeded), so no exact point correspondences remain. Units: normalised.
+    many points (seeded), so no exact point correspondences remain; with ``resample_target``
+    the target crops its own independent draw of the fragment. Units: normalised.
     """
     from cegc_ros.data.protocols import sample_7scenes_pair
 
@@ -170,7 +172,8 @@ def real_7scenes_pairs(real_dir: str | Path, num_pairs: int = 60, num_points: in
     out = []
     for i in range(num_pairs):
         rng = np.random.default_rng([seed, i])
-        p = sample_7scenes_pair(clouds[i % len(clouds)], rng, num_points=num_points)
+        p = sample_7scenes_pair(clouds[i % len(clouds)], rng, num_points=num_points,
+                                resample_target=resample_target)
         src, tgt = p.source, p.target
         if subsample:
             sub = np.random.default_rng([seed, i, 1])
@@ -720,6 +723,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="7scenes protocol: points resampled before the 75%% crops (default 2048)")
     p.add_argument("--subsample", type=int, default=None,
                    help="7scenes protocol: thin each cloud independently to this many points")
+    p.add_argument("--resample-target", action="store_true",
+                   help="7scenes protocol: the target crops an independent draw of the fragment "
+                        "(no shared points)")
     p.add_argument("--seed", type=int, default=0, help="7scenes protocol seed (default 0)")
     p.add_argument("--suite", action="store_true",
                    help="the README evaluation in one run: a 7scenes test bag, a fragments test "
@@ -791,13 +797,14 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
             settings["source"] = f"real fragment pairs {args.real_dir} (metres)"
         else:
             pairs = real_7scenes_pairs(args.real_dir, args.num_pairs, args.num_points, args.seed,
-                                       args.subsample)
+                                       args.subsample, args.resample_target)
             real_fragments = False
             title = f"cegc-eval: 7Scenes protocol on the fragments of {args.real_dir}"
             settings["source"] = (f"7Scenes protocol (sample_7scenes_pair) on {args.real_dir}: "
                                   f"{args.num_pairs} pairs, {args.num_points} points resampled, "
                                   f"75% crops, seed {args.seed}"
                                   + (f", each cloud thinned to {args.subsample}" if args.subsample else "")
+                                  + (", target an independent resample" if args.resample_target else "")
                                   + "; normalised units (largest bbox side 1)")
         if args.limit:
             pairs = pairs[: args.limit]
