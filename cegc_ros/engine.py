@@ -240,8 +240,8 @@ class Registrar:
         sel = out.src_idx[0].cpu().numpy()
         corr = np.stack([sel, out.match[0].cpu().numpy()], axis=1).astype(np.int64)
         weights = out.weights[0].float().cpu().numpy()
+        spacing_n = _median_spacing(pt.points.astype(np.float64))    # normalised units
         if eng.solver == "robust":
-            spacing_n = _median_spacing(pt.points.astype(np.float64))
             R, t_n, _, valid = robust_pose(ps.points[corr[:, 0]], pt.points[corr[:, 1]], weights,
                                            eng.robust_inlier_factor * spacing_n,
                                            hypotheses=eng.robust_hypotheses, seed=pre.seed)
@@ -255,7 +255,9 @@ class Registrar:
         tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
         s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
         t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
-        reason = "" if valid else "degenerate correspondences (weights ~0 or collinear points)"
+        reason = "" if valid else (
+            "no hypothesis explained 3 or more correspondences" if eng.solver == "robust"
+            else "degenerate correspondences (weights ~0 or collinear points)")
         if valid and not np.isfinite(T).all():
             valid, reason = False, "non-finite transform"
         refined = "none"
@@ -264,8 +266,7 @@ class Registrar:
             T = self._icp(src, tgt, T, norm, eng)
             refined = "icp"
             timings["refine"] = time.perf_counter() - t3
-        spacing = _median_spacing(tgt_m)
-        inlier = 2.0 * spacing
+        inlier = 2.0 * spacing_n * norm.scale                         # metres
         fitness = _fitness(src_m, tgt_m, T, inlier)
         cov = covariance_from_correspondences(src_m[corr[:, 0]], tgt_m[corr[:, 1]], weights, T)
         timings["total"] = time.perf_counter() - t0
