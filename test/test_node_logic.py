@@ -62,6 +62,7 @@ class FakeRegistrar:
     def __init__(self, preprocess, engine) -> None:
         self.preprocess, self.engine = preprocess, engine
         self.delay = 0.0
+        self.gate: threading.Event | None = None   # when set, register() waits for it
         self.calls: list[tuple[int, int]] = []
         self.updates = 0
 
@@ -73,6 +74,8 @@ class FakeRegistrar:
         assert src.dtype == np.float32 and src.shape[1] == 3
         self.calls.append((len(src), len(tgt)))
         time.sleep(self.delay)
+        if self.gate is not None:
+            self.gate.wait(10.0)
         n = self.preprocess.num_points
         s, t = src[:n], tgt[:n]
         so = np.linspace(0, 1, len(s), dtype=np.float32)
@@ -361,14 +364,19 @@ def test_frame_change_is_counted_and_followed(ros):
 def test_busy_engine_drops_the_waiting_pair_not_the_newest(ros):
     node, probe, reg = ros
     good = _pts(200)
-    reg.delay = 0.3
+    gate = threading.Event()      # the engine holds the first pair until the others are in
+    reg.gate = gate
     try:
         dropped = _count(node, "pairs_dropped")
+        pairs_in = _count(node, "pairs_in")
         base = 6000 * SEC
         probe.send(rh.cloud(good, "a", base), rh.cloud(good, "b", base))
-        assert rh.wait_for(lambda: node.diagnostics_values()["busy"] == "true", 2.0, 0.005)
+        assert rh.wait_for(lambda: node.diagnostics_values()["busy"] == "true", 5.0, 0.005)
         for k in range(1, 5):
             probe.send(rh.cloud(good, "a", base + k * SEC), rh.cloud(good, "b", base + k * SEC))
+        assert rh.wait_for(lambda: _count(node, "pairs_in") == pairs_in + 5, 5.0)
+        reg.gate = None
+        gate.set()
         last = base + 4 * SEC
         assert rh.wait_for(lambda: last in probe.by_stamp("pose"), 5.0)
         poses = [s for s in probe.by_stamp("pose") if base <= s <= last]
@@ -377,7 +385,8 @@ def test_busy_engine_drops_the_waiting_pair_not_the_newest(ros):
         assert sorted(poses) == [base, last]
         assert _count(node, "pairs_dropped") == dropped + 3
     finally:
-        reg.delay = 0.0
+        reg.gate = None
+        gate.set()
 
 
 def test_default_input_qos_is_sensor_data():
