@@ -31,16 +31,22 @@ RIGID_ATOL = 1e-4
 QUATERNION_NORM_ATOL = 1e-3
 
 
+def _finite_array(value: Any, n: int, what: str) -> np.ndarray:
+    """``value`` as a finite (n, n) float64 array; ValueError naming ``what`` otherwise."""
+    try:
+        M = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} is not a numeric {n}x{n} array: {err}") from err
+    if M.shape != (n, n):
+        raise ValueError(f"{what} must have shape ({n}, {n}), got {M.shape}")
+    if not np.isfinite(M).all():
+        raise ValueError(f"{what} has non-finite entries")
+    return M
+
+
 def _matrix(T: Any) -> np.ndarray:
     """``T`` as a validated (4, 4) float64 rigid transform."""
-    try:
-        M = np.asarray(T, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"transform is not a numeric 4x4 array: {err}") from err
-    if M.shape != (4, 4):
-        raise ValueError(f"transform must have shape (4, 4), got {M.shape}")
-    if not np.isfinite(M).all():
-        raise ValueError("transform has non-finite entries")
+    M = _finite_array(T, 4, "transform")
     if not np.allclose(M[3], (0.0, 0.0, 0.0, 1.0), rtol=0.0, atol=RIGID_ATOL):
         raise ValueError(f"transform bottom row is {M[3].tolist()}, expected [0, 0, 0, 1]")
     R = M[:3, :3]
@@ -143,14 +149,7 @@ def pose_with_covariance_stamped(T: Any, covariance: Any,
     """
     msg = PoseWithCovarianceStamped(header=_header(header))
     msg.pose.pose = matrix_to_pose(T)
-    try:
-        C = np.asarray(covariance, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"covariance is not a numeric 6x6 array: {err}") from err
-    if C.shape != (6, 6):
-        raise ValueError(f"covariance must have shape (6, 6), got {C.shape}")
-    if not np.isfinite(C).all():
-        raise ValueError("covariance has non-finite entries")
+    C = _finite_array(covariance, 6, "covariance")
     scale = max(float(np.abs(C).max()), 1e-300)
     if np.abs(C - C.T).max() > 1e-9 * scale:
         raise ValueError("covariance is not symmetric")
