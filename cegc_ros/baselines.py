@@ -31,6 +31,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .geometry import finite_cloud
+
 METHODS = ("icp", "fgr", "ransac")
 
 
@@ -92,16 +94,6 @@ def load_open3d(threads: int = 2):
     return o3d
 
 
-def _clean(xyz: np.ndarray, name: str, min_points: int) -> np.ndarray:
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"{name} cloud must have shape (N, 3), got {xyz.shape}")
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    if len(xyz) < min_points:
-        raise ValueError(f"{name} cloud has {len(xyz)} finite points, need at least {min_points}")
-    return xyz
-
-
 def scale_of(source_xyz: np.ndarray, target_xyz: np.ndarray) -> float:
     """Extent of a pair: the larger of the two clouds' largest bounding-box sides, (N, 3), (M, 3).
 
@@ -110,10 +102,10 @@ def scale_of(source_xyz: np.ndarray, target_xyz: np.ndarray) -> float:
     return float(max(np.max(c.max(axis=0) - c.min(axis=0)) for c in (source_xyz, target_xyz)))
 
 
-def voxel_for(source_xyz: np.ndarray, target_xyz: np.ndarray, config: BaselineConfig) -> float:
+def voxel_for(extent: float, config: BaselineConfig) -> float:
+    """Voxel size for a pair of the given extent (see :func:`scale_of`)."""
     if config.voxel_size > 0:
         return float(config.voxel_size)
-    extent = scale_of(source_xyz, target_xyz)
     if not extent > 0:
         raise ValueError("clouds have zero extent")
     return config.voxel_ratio * extent
@@ -122,9 +114,9 @@ def voxel_for(source_xyz: np.ndarray, target_xyz: np.ndarray, config: BaselineCo
 class _Prepared:
     """Voxelized clouds with normals (and FPFH when asked) of one pair."""
 
-    def __init__(self, o3d, source_xyz, target_xyz, voxel: float, config: BaselineConfig,
-                 fpfh: bool) -> None:
-        self.voxel = voxel
+    def __init__(self, o3d, source_xyz, target_xyz, config: BaselineConfig, fpfh: bool) -> None:
+        self.extent = scale_of(source_xyz, target_xyz)   # of the clouds before the voxel grid
+        self.voxel = voxel = voxel_for(self.extent, config)
         reg = o3d.pipelines.registration
         normal = o3d.geometry.KDTreeSearchParamHybrid(
             radius=config.normal_radius_factor * voxel, max_nn=config.normal_max_nn)
@@ -170,20 +162,26 @@ def _finish(o3d, prep: _Prepared, T: np.ndarray, method: str, config: BaselineCo
     )
 
 
+def _prepare(source_xyz: np.ndarray, target_xyz: np.ndarray, config: BaselineConfig | None,
+             fpfh: bool) -> tuple[Any, BaselineConfig, _Prepared, float, float]:
+    """Shared start of every baseline: validate, voxelize, normals (+ FPFH); returns
+    (open3d, config, prepared pair, start time, time after features)."""
+    config = config or BaselineConfig()
+    o3d = load_open3d(config.threads)
+    src = finite_cloud("source cloud", source_xyz, config.min_points)
+    tgt = finite_cloud("target cloud", target_xyz, config.min_points)
+    t0 = time.perf_counter()
+    prep = _Prepared(o3d, src, tgt, config, fpfh=fpfh)
+    return o3d, config, prep, t0, time.perf_counter()
+
+
 def register_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
                  config: BaselineConfig | None = None) -> BaselineResult:
     """Open3D point-to-plane ICP started from the identity (source (N, 3), target (M, 3))."""
-    config = config or BaselineConfig()
-    o3d = load_open3d(config.threads)
-    src = _clean(source_xyz, "source", config.min_points)
-    tgt = _clean(target_xyz, "target", config.min_points)
-    t0 = time.perf_counter()
-    voxel = voxel_for(src, tgt, config)
-    prep = _Prepared(o3d, src, tgt, voxel, config, fpfh=False)
-    t_feat = time.perf_counter()
+    o3d, config, prep, t0, t_feat = _prepare(source_xyz, target_xyz, config, fpfh=False)
     reg = o3d.pipelines.registration
     res = reg.registration_icp(
-        prep.source, prep.target, config.icp_distance_ratio * scale_of(src, tgt), np.eye(4),
+        prep.source, prep.target, config.icp_distance_ratio * prep.extent, np.eye(4),
         reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations))
     return _finish(o3d, prep, res.transformation, "icp", config, t0, t_feat)
@@ -192,13 +190,7 @@ def register_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
 def register_fgr(source_xyz: np.ndarray, target_xyz: np.ndarray,
                  config: BaselineConfig | None = None) -> BaselineResult:
     """Open3D Fast Global Registration on FPFH features (source (N, 3), target (M, 3))."""
-    config = config or BaselineConfig()
-    o3d = load_open3d(config.threads)
-    src = _clean(source_xyz, "source", config.min_points)
-    tgt = _clean(target_xyz, "target", config.min_points)
-    t0 = time.perf_counter()
-    prep = _Prepared(o3d, src, tgt, voxel_for(src, tgt, config), config, fpfh=True)
-    t_feat = time.perf_counter()
+    o3d, config, prep, t0, t_feat = _prepare(source_xyz, target_xyz, config, fpfh=True)
     reg = o3d.pipelines.registration
     option = reg.FastGlobalRegistrationOption(
         division_factor=config.fgr_division_factor,
@@ -214,13 +206,7 @@ def register_fgr(source_xyz: np.ndarray, target_xyz: np.ndarray,
 def register_ransac(source_xyz: np.ndarray, target_xyz: np.ndarray,
                     config: BaselineConfig | None = None) -> BaselineResult:
     """Open3D RANSAC on FPFH feature matches (source (N, 3), target (M, 3)), seeded."""
-    config = config or BaselineConfig()
-    o3d = load_open3d(config.threads)
-    src = _clean(source_xyz, "source", config.min_points)
-    tgt = _clean(target_xyz, "target", config.min_points)
-    t0 = time.perf_counter()
-    prep = _Prepared(o3d, src, tgt, voxel_for(src, tgt, config), config, fpfh=True)
-    t_feat = time.perf_counter()
+    o3d, config, prep, t0, t_feat = _prepare(source_xyz, target_xyz, config, fpfh=True)
     reg = o3d.pipelines.registration
     distance = config.ransac_distance_factor * prep.voxel
     o3d.utility.random.seed(config.seed)

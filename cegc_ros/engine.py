@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from .config import EngineConfig, PreprocessConfig
-from .geometry import Normalisation, normalise_pair, prepare_cloud, voxel_downsample
+from .geometry import Normalisation, finite_cloud, normalise_pair, prepare_cloud, voxel_downsample
 from .solver import robust_pose
 
 CHECKPOINT_FORMAT = 1
@@ -108,18 +108,6 @@ def resolve_device(device: str) -> str:
     if device != "cpu" and not device.startswith("cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {device!r}")
     return device
-
-
-def _finite_cloud(name: str, xyz: Any, min_points: int) -> np.ndarray:
-    arr = np.asarray(xyz)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
-    arr = arr[np.isfinite(arr).all(axis=1)].astype(np.float64)
-    if len(arr) < min_points:
-        raise ValueError(f"{name} has {len(arr)} finite points, at least {min_points} are needed")
-    return arr
 
 
 def covariance_from_correspondences(src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
@@ -212,8 +200,8 @@ class Registrar:
         import torch
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        src = _finite_cloud("source", source_xyz, self.MIN_POINTS)
-        tgt = _finite_cloud("target", target_xyz, self.MIN_POINTS)
+        src = finite_cloud("source", source_xyz, self.MIN_POINTS)
+        tgt = finite_cloud("target", target_xyz, self.MIN_POINTS)
         if pre.voxel_size > 0:
             src = voxel_downsample(src, pre.voxel_size).astype(np.float64)
             tgt = voxel_downsample(tgt, pre.voxel_size).astype(np.float64)

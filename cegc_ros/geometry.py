@@ -44,6 +44,20 @@ class Normalisation:
         return R, (R @ self.c_source + T[:3, 3] - self.c_target) / self.scale
 
 
+def finite_cloud(name: str, xyz: object, min_points: int) -> np.ndarray:
+    """(N, 3) numeric points -> float64 copy of the finite rows; ValueError naming ``name``
+    when the shape or dtype is wrong or fewer than ``min_points`` rows are finite."""
+    arr = np.asarray(xyz)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
+    arr = arr[np.isfinite(arr).all(axis=1)].astype(np.float64)
+    if len(arr) < min_points:
+        raise ValueError(f"{name} has {len(arr)} finite points, at least {min_points} are needed")
+    return arr
+
+
 def normalise_pair(source: np.ndarray, target: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, Normalisation]:
     """(N, 3), (M, 3) metres -> normalised float32 copies and the Normalisation."""
