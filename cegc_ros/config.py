@@ -51,7 +51,11 @@ class EngineConfig:
         "Inlier residual of the robust solver, in multiples of the target's median point spacing.",
         0.5, 20.0))
     robust_hypotheses: int = field(default=5000, metadata=_meta(
-        "Hypotheses drawn by the robust solver.", 10, 100000))
+        "Hypotheses per round of the robust solver.", 10, 100000))
+    robust_max_hypotheses: int = field(default=50000, metadata=_meta(
+        "Budget of the robust solver: rounds continue until the RANSAC stopping rule (99.9%) holds "
+        "for the best hypothesis so far or this many were drawn (one round when <= "
+        "robust_hypotheses). Easy pairs stop after one round.", 0, 1000000))
     # ICP is the default because it won on the real pairs (README, "Accuracy"): 7Scenes protocol
     # on real SUN3D fragments, with and without shared points.
     refine: str = field(default="icp", metadata=_meta(

@@ -232,7 +232,8 @@ class Registrar:
         if eng.solver == "robust":
             R, t_n, _, valid = robust_pose(ps.points[corr[:, 0]], pt.points[corr[:, 1]], weights,
                                            eng.robust_inlier_factor * spacing_n,
-                                           hypotheses=eng.robust_hypotheses, seed=pre.seed)
+                                           hypotheses=eng.robust_hypotheses, seed=pre.seed,
+                                           max_hypotheses=eng.robust_max_hypotheses)
         else:
             R = out.R[0].double().cpu().numpy()
             t_n = out.t[0].double().cpu().numpy()

@@ -59,13 +59,21 @@ def _batched_kabsch(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def robust_pose(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
-                hypotheses: int = 5000, seed: int = 0, refine_iters: int = 3
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+                hypotheses: int = 5000, seed: int = 0, refine_iters: int = 3,
+                max_hypotheses: int = 0, confidence: float = 0.999,
+                stats: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Best rigid (R, t) for correspondences src[i] -> tgt[i] with confidences w.
+
+    Hypotheses are drawn in rounds of ``hypotheses``. With ``max_hypotheses`` above that,
+    rounds continue until the usual RANSAC stopping rule is met for the best hypothesis so
+    far: with q = sampling probability of drawing one of its inliers, a round count giving an
+    all-inlier triplet with probability ``confidence`` (N >= log(1 - confidence) / log(1 - q^3)),
+    or until ``max_hypotheses`` were drawn. Easy pairs (many inliers) stop after one round.
 
     Args:
         src, tgt: (M, 3) corresponding points; w: (M,) confidences >= 0.
         inlier_distance: residual under which a correspondence counts as explained.
+        stats: when given, receives ``drawn`` (hypotheses drawn).
     Returns:
         R (3, 3), t (3,), inlier mask (M,), valid.
     """
@@ -78,21 +86,33 @@ def robust_pose(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance
         return none
     rng = np.random.default_rng(seed)
     p = (w + 1e-6 * w.max()) / (w + 1e-6 * w.max()).sum()
-    idx = rng.choice(M, size=(hypotheses, 3), replace=True, p=p)
-    a, b = src[idx], tgt[idx]                                           # (H, 3, 3)
-    # Shape check: a rigid motion keeps the triangle's edge lengths.
-    ea = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
-    eb = np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
-    ok = (np.abs(ea - eb) < 2 * inlier_distance).all(1) & (ea > 2 * inlier_distance).all(1)
-    if not ok.any():
+    budget = max(hypotheses, max_hypotheses)
+    drawn, best_score = 0, -1.0
+    Rb = tb = inl = None
+    while drawn < budget:
+        n = min(hypotheses, budget - drawn)
+        drawn += n
+        idx = rng.choice(M, size=(n, 3), replace=True, p=p)
+        a, b = src[idx], tgt[idx]                                       # (H, 3, 3)
+        # Shape check: a rigid motion keeps the triangle's edge lengths.
+        ea = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
+        eb = np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
+        ok = (np.abs(ea - eb) < 2 * inlier_distance).all(1) & (ea > 2 * inlier_distance).all(1)
+        if ok.any():
+            R, t = _batched_kabsch(a[ok], b[ok])
+            res = np.linalg.norm(np.einsum("hij,mj->hmi", R, src) + t[:, None] - tgt[None], axis=2)
+            score = ((res < inlier_distance) * w[None]).sum(1)                      # (H,)
+            k = int(score.argmax())
+            if score[k] > best_score:
+                best_score, Rb, tb, inl = float(score[k]), R[k], t[k], res[k] < inlier_distance
+        if inl is not None:
+            q = float(p[inl].sum())
+            if q >= 1.0 or drawn >= np.log(1.0 - confidence) / np.log(max(1.0 - q ** 3, 1e-12)):
+                break
+    if stats is not None:
+        stats["drawn"] = drawn
+    if inl is None:
         return none
-    a, b = a[ok], b[ok]
-    R, t = _batched_kabsch(a, b)
-    res = np.linalg.norm(np.einsum("hij,mj->hmi", R, src) + t[:, None] - tgt[None], axis=2)   # (H, M)
-    score = ((res < inlier_distance) * w[None]).sum(1)
-    best = int(score.argmax())
-    Rb, tb = R[best], t[best]
-    inl = res[best] < inlier_distance
     for _ in range(refine_iters):
         sol = kabsch_weighted(src[inl], tgt[inl], w[inl])
         if sol is None:

@@ -41,6 +41,7 @@ class Stage:
     keep_ratio: float = 0.75
     resample_prob: float = 0.0   # probability that the target is an independent resample
     fragments_prob: float = 0.0  # probability of a two-fragment pair (different views, metres)
+    noise_max: float = 0.0       # > data.noise_sigma: per-pair noise sigma uniform in [noise_sigma, noise_max]
 
 
 @dataclass
@@ -52,7 +53,8 @@ class DataConfig:
     val_pairs: int = 24
     val_points: int = 1024
     val_resample_prob: float = 0.0   # share of validation pairs whose target is an independent resample
-    noise_sigma: float = 0.002   # normalised units, on top of the rendered sensor noise
+    noise_sigma: float = 0.002   # unit-box units (7Scenes protocol), on top of the rendered sensor noise
+    val_noise_max: float = 0.0   # validation pairs' noise: as Stage.noise_max
 
 
 @dataclass
@@ -124,9 +126,12 @@ class PairSampler:
             if pair is not None:
                 return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
         frag = self.fragments[rng.integers(len(self.fragments))]
+        sigma = self.noise_sigma
+        if stage.noise_max > sigma:   # independent noise on each cloud breaks exact point pairs
+            sigma = float(rng.uniform(sigma, stage.noise_max))
         pair = sample_7scenes_pair(frag.points, rng, num_points=2048, keep_ratio=stage.keep_ratio,
                                    max_angle_deg=stage.max_angle_deg, max_translation=0.5,
-                                   noise_sigma=self.noise_sigma,
+                                   noise_sigma=sigma,
                                    resample_target=bool(rng.random() < stage.resample_prob))
         return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
 
@@ -210,7 +215,8 @@ class Trainer:
         vs = PairSampler(val_fragments or fragments, 0.0, with_feat)
         vrng = np.random.default_rng(12345)
         final = cfg.train.stages[-1]
-        val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob)
+        val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob,
+                          noise_max=cfg.data.val_noise_max)
         self.val_batches = [vs.sample(vrng, val_stage) for _ in range(cfg.data.val_pairs)]
 
     def _resume(self, path: Path) -> None:

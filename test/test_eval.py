@@ -158,6 +158,14 @@ def test_real_dir_pairs_and_7scenes_protocol(tmp_path):
     thin = E.real_7scenes_pairs(tmp_path, num_pairs=1, num_points=256, seed=1, subsample=100)
     assert len(thin[0].source) == len(thin[0].target) == 100
 
+    # Noise: the same draw, each cloud moved independently by sigma (clipped at 5 sigma).
+    noisy = E.real_7scenes_pairs(tmp_path, num_pairs=3, num_points=256, seed=1, noise_sigma=0.01)
+    for a, b in zip(proxy, noisy):
+        np.testing.assert_array_equal(a.T_gt, b.T_gt)
+        d = b.source - a.source
+        assert 0.008 < d.std() < 0.012 and np.abs(d).max() <= 0.05 + 1e-6
+        assert not np.allclose(b.target - a.target, d[: len(a.target)])   # independent per cloud
+
 
 def test_cli_fails_with_one_line_reasons(bag, tmp_path, capsys):
     assert E.main([str(bag), "--methods", "icp,nope", "--out", str(tmp_path)]) == 2
@@ -235,9 +243,10 @@ def test_suite_runs_every_readme_evaluation_into_one_summary(tmp_path, capsys):
     _fake_real_dir(real)
     out = tmp_path / "suite"
     assert E.main(["--suite", "--suite-pairs", "1", "--suite-fragment-pairs", "1", "--num-pairs",
-                   "1", "--num-points", "512", "--real-dir", str(real), "--methods", "icp",
+                   "1", "--suite-hard-pairs", "1", "--num-points", "512", "--real-dir", str(real), "--methods", "icp",
                    "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"]) == 0
-    parts = ("7scenes_test", "fragments_test", "real_pairs", "real_7scenes")
+    parts = ("7scenes_test", "fragments_test", "real_pairs", "real_7scenes", "real_7scenes_resample",
+             "real_7scenes_noise")
     doc = json.loads((out / "metrics.json").read_text())
     assert list(doc) == list(parts)
     assert doc["fragments_test"]["recall"] == "Error(R) < 15 deg and Error(t) < 0.3 m"
@@ -245,4 +254,5 @@ def test_suite_runs_every_readme_evaluation_into_one_summary(tmp_path, capsys):
     summary = (out / "summary.md").read_text()
     for name in parts:
         assert f"## {name}:" in summary and (out / name / "report.md").is_file()
-    assert summary.count("| icp |") == 4
+    assert summary.count("| icp |") == 6
+    assert "Gaussian noise sigma 0.01" in doc["real_7scenes_noise"]["source"]

@@ -60,3 +60,29 @@ def test_weighted_kabsch_exact_and_degenerate():
     assert sol is not None and np.allclose(sol[0], R, atol=1e-9) and np.allclose(sol[1], t, atol=1e-9)
     line = np.linspace(0, 1, 20)[:, None] * [1.0, 2.0, 3.0]
     assert kabsch_weighted(line, line, np.ones(20)) is None
+
+
+def test_budget_keeps_drawing_until_a_low_inlier_pose_is_found():
+    # 4% inliers and flat weights: an all-inlier triplet turns up once in ~16k draws.
+    src, tgt, R, t, bad = problem(outlier_frac=0.96, seed=2)
+    w = np.ones(len(src))
+    R_one, _, _, _ = robust_pose(src, tgt, w, inlier_distance=0.01, hypotheses=1000)
+    stats: dict = {}
+    R_all, t_all, inl, valid = robust_pose(src, tgt, w, inlier_distance=0.01, hypotheses=1000,
+                                           max_hypotheses=150000, stats=stats)
+    err = lambda Re: np.degrees(np.arccos(np.clip((np.trace(R.T @ Re) - 1) / 2, -1, 1)))  # noqa: E731
+    assert err(R_one) > 10.0                       # one round of 1000 misses it
+    assert valid and err(R_all) < 0.5 and np.linalg.norm(t_all - t) < 0.005
+    assert 1000 < stats["drawn"] <= 150000
+    assert (inl & ~bad).sum() >= 0.9 * (~bad).sum() and (inl & bad).sum() <= 3
+
+
+def test_easy_pairs_stop_after_the_first_round():
+    # 30% inliers: the stopping rule holds after round one, so a large budget changes nothing.
+    src, tgt, *_ = problem(seed=4)
+    a = robust_pose(src, tgt, np.ones(len(src)), 0.01, hypotheses=2000, seed=7)
+    stats: dict = {}
+    b = robust_pose(src, tgt, np.ones(len(src)), 0.01, hypotheses=2000, seed=7, max_hypotheses=10**6,
+                    stats=stats)
+    assert stats["drawn"] == 2000
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[2], b[2])

@@ -172,8 +172,8 @@ def sample_7scenes_pair(points: np.ndarray, rng: np.random.Generator, num_points
     far point; the target is then moved by a random rotation (each Euler angle uniform in
     +-max_angle_deg) and translation (uniform in +-max_translation per axis). With
     ``resample_target`` the target crops its own independent draw of the fragment (no exact
-    point-to-point correspondences); ``noise_sigma`` (normalised units) adds Gaussian noise to
-    both clouds. Point order is shuffled. Returns source (K, 3), target (K, 3) float32,
+    point-to-point correspondences); ``noise_sigma`` (normalised units) adds Gaussian noise,
+    clipped at 5 sigma, to each cloud independently. Point order is shuffled. Returns source (K, 3), target (K, 3) float32,
     K = round(keep_ratio * num_points), in normalised units; info has ``scale`` (metres per unit)
     and ``centre`` so metric errors can be recovered, and ``overlap``.
     """
@@ -194,9 +194,10 @@ def sample_7scenes_pair(points: np.ndarray, rng: np.random.Generator, num_points
     T = random_transform(rng, max_angle_deg, max_translation)
     source = pts[src_i]
     target = transform_points(T, pts[tgt_i])
-    if noise_sigma > 0:
-        source = source + rng.normal(0, noise_sigma, source.shape).astype(np.float32)
-        target = target + rng.normal(0, noise_sigma, target.shape).astype(np.float32)
+    if noise_sigma > 0:   # clipped at 5 sigma, as the paper's (RPM-Net's) 0.01 / 0.05 noise
+        clip = 5.0 * noise_sigma
+        source = source + np.clip(rng.normal(0, noise_sigma, source.shape), -clip, clip).astype(np.float32)
+        target = target + np.clip(rng.normal(0, noise_sigma, target.shape), -clip, clip).astype(np.float32)
     if resample_target:
         overlap = overlap_ratio(source, target, T, OVERLAP_RADIUS / scale)
     else:                                   # exact: fraction of source points also in target

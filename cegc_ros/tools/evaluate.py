@@ -156,14 +156,15 @@ def real_fragment_files(real_dir: str | Path) -> list[Path]:
 
 def real_7scenes_pairs(real_dir: str | Path, num_pairs: int = 60, num_points: int = 2048,
                        seed: int = 0, subsample: int | None = None,
-                       resample_target: bool = False) -> list[EvalPair]:
+                       resample_target: bool = False, noise_sigma: float = 0.0) -> list[EvalPair]:
     """The 7Scenes protocol on real fragments: pair i crops fragment ``i mod F``.
 
     Each pair is ``sample_7scenes_pair(fragment, default_rng([seed, i]), num_points)``: unit
     bounding box, ``num_points`` resampled, two 75% crops, the target moved by <= 45 deg per
     axis and <= 0.5 per axis. With ``subsample`` each cloud is then independently thinned to that
     many points (seeded), so no exact point correspondences remain; with ``resample_target``
-    the target crops its own independent draw of the fragment. Units: normalised.
+    the target crops its own independent draw of the fragment; ``noise_sigma`` adds independent
+    Gaussian noise to each cloud (the paper's robustness test uses 0.01). Units: normalised.
     """
     from cegc_ros.data.protocols import sample_7scenes_pair
 
@@ -173,7 +174,7 @@ def real_7scenes_pairs(real_dir: str | Path, num_pairs: int = 60, num_points: in
     for i in range(num_pairs):
         rng = np.random.default_rng([seed, i])
         p = sample_7scenes_pair(clouds[i % len(clouds)], rng, num_points=num_points,
-                                resample_target=resample_target)
+                                resample_target=resample_target, noise_sigma=noise_sigma)
         src, tgt = p.source, p.target
         if subsample:
             sub = np.random.default_rng([seed, i, 1])
@@ -726,6 +727,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resample-target", action="store_true",
                    help="7scenes protocol: the target crops an independent draw of the fragment "
                         "(no shared points)")
+    p.add_argument("--noise-sigma", type=float, default=0.0,
+                   help="7scenes protocol: Gaussian noise (clipped at 5 sigma) added to each cloud "
+                        "independently, normalised units; the paper's robustness test uses 0.01")
     p.add_argument("--seed", type=int, default=0, help="7scenes protocol seed (default 0)")
     p.add_argument("--suite", action="store_true",
                    help="the README evaluation in one run: a 7scenes test bag, a fragments test "
@@ -736,6 +740,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="suite: pairs of the 7scenes test bag (default 100)")
     p.add_argument("--suite-fragment-pairs", type=int, default=50,
                    help="suite: pairs of the fragments test bag (default 50)")
+    p.add_argument("--suite-hard-pairs", type=int, default=30,
+                   help="suite: pairs of the resampled-target and noisy 7Scenes-protocol sets on the "
+                        "real fragments (default 30)")
     p.add_argument("--cache", default=".cache/eval", help="suite: where its bags are kept")
     p.add_argument("--methods", default=",".join(ALL_METHODS),
                    help=f"comma-separated subset of {','.join(ALL_METHODS)}")
@@ -796,8 +803,10 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
             title = f"cegc-eval: real pairs in {args.real_dir}"
             settings["source"] = f"real fragment pairs {args.real_dir} (metres)"
         else:
+            if not 0.0 <= args.noise_sigma < 0.5:
+                raise EvalError(f"--noise-sigma must be in [0, 0.5), got {args.noise_sigma}")
             pairs = real_7scenes_pairs(args.real_dir, args.num_pairs, args.num_points, args.seed,
-                                       args.subsample, args.resample_target)
+                                       args.subsample, args.resample_target, args.noise_sigma)
             real_fragments = False
             title = f"cegc-eval: 7Scenes protocol on the fragments of {args.real_dir}"
             settings["source"] = (f"7Scenes protocol (sample_7scenes_pair) on {args.real_dir}: "
@@ -805,6 +814,7 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
                                   f"75% crops, seed {args.seed}"
                                   + (f", each cloud thinned to {args.subsample}" if args.subsample else "")
                                   + (", target an independent resample" if args.resample_target else "")
+                                  + (f", Gaussian noise sigma {args.noise_sigma}" if args.noise_sigma else "")
                                   + "; normalised units (largest bbox side 1)")
         if args.limit:
             pairs = pairs[: args.limit]
@@ -824,6 +834,7 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
                     settings=settings, params_file=args.params)
 
 
+SUITE_NOISE = 0.01     # the paper's Gaussian-noise test: sigma 0.01, clipped at 0.05
 DEFAULT_REAL_DIR = REPO_ROOT.parent / "shared" / "data" / "real" / "sun3d"
 
 
@@ -859,6 +870,16 @@ def run_suite(args: argparse.Namespace, argv: Sequence[str]) -> Path:
                              f"{args.num_pairs} pairs, {args.num_points} points, seed {args.seed}",
              lambda: real_7scenes_pairs(real_dir, args.num_pairs, args.num_points, args.seed,
                                         args.subsample),
+             metrics.SEVEN_SCENES_RECALL),
+            ("real_7scenes_resample", f"as real_7scenes, the target an independent resample "
+                                      f"(no shared points), {args.suite_hard_pairs} pairs, seed 9",
+             lambda: real_7scenes_pairs(real_dir, args.suite_hard_pairs, args.num_points, 9,
+                                        resample_target=True),
+             metrics.SEVEN_SCENES_RECALL),
+            ("real_7scenes_noise", f"as real_7scenes, Gaussian noise sigma {SUITE_NOISE} on each "
+                                   f"cloud (the paper's noise test), {args.suite_hard_pairs} pairs, seed 9",
+             lambda: real_7scenes_pairs(real_dir, args.suite_hard_pairs, args.num_points, 9,
+                                        noise_sigma=SUITE_NOISE),
              metrics.SEVEN_SCENES_RECALL),
         ]
     else:
