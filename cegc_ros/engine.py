@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from .config import EngineConfig, PreprocessConfig
-from .geometry import Normalisation, finite_cloud, normalise_pair, prepare_cloud, voxel_downsample
+from .geometry import LEGACY_FEATURES, Normalisation, finite_cloud, normalise_pair, prepare_cloud, voxel_downsample
 from .solver import robust_pose
 
 CHECKPOINT_FORMAT = 1
@@ -89,7 +89,10 @@ def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[Any, dict[st
         got = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"checkpoint {path}: format {got!r}, expected {CHECKPOINT_FORMAT}")
     try:
-        cfg = ModelConfig.from_dict(payload["model_config"])
+        raw = dict(payload["model_config"])
+        for key, value in LEGACY_FEATURES.items():   # written before the radii were stored
+            raw.setdefault(key, value)
+        cfg = ModelConfig.from_dict(raw)
         model = CEGC(cfg)
         model.load_state_dict(payload["state_dict"])
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
@@ -211,8 +214,9 @@ class Registrar:
                                      f"at least {self.MIN_POINTS} are needed")
         src_n, tgt_n, norm = normalise_pair(src, tgt)
         rng = np.random.default_rng(pre.seed)
-        ps = prepare_cloud(src_n, pre.num_points, rng, self.uses_features)
-        pt = prepare_cloud(tgt_n, pre.num_points, rng, self.uses_features)
+        features = self.model.cfg.features()
+        ps = prepare_cloud(src_n, pre.num_points, rng, **features)
+        pt = prepare_cloud(tgt_n, pre.num_points, rng, **features)
         t1 = time.perf_counter()
         timings["preprocess"] = t1 - t0
 

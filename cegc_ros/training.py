@@ -42,6 +42,7 @@ class Stage:
     resample_prob: float = 0.0   # probability that the target is an independent resample
     fragments_prob: float = 0.0  # probability of a two-fragment pair (different views, metres)
     noise_max: float = 0.0       # > data.noise_sigma: per-pair noise sigma uniform in [noise_sigma, noise_max]
+    noise_prob: float = 1.0      # share of pairs that get that extra noise (the rest: data.noise_sigma)
 
 
 @dataclass
@@ -108,12 +109,13 @@ class Config:
 class PairSampler:
     """Training / validation pairs in the network's normalised frame, as tensors."""
 
-    def __init__(self, fragments: list[Any], noise_sigma: float, with_features: bool) -> None:
+    def __init__(self, fragments: list[Any], noise_sigma: float, features: dict[str, Any]) -> None:
+        """``features``: :meth:`ModelConfig.features` of the network being trained."""
         if not fragments:
             raise ValueError("no fragments to sample from")
         self.fragments = fragments
         self.noise_sigma = noise_sigma
-        self.with_features = with_features
+        self.features = dict(features)
         by_scene: dict[int, list[Any]] = {}
         for f in fragments:
             by_scene.setdefault(int(f.scene_seed), []).append(f)
@@ -127,7 +129,7 @@ class PairSampler:
                 return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
         frag = self.fragments[rng.integers(len(self.fragments))]
         sigma = self.noise_sigma
-        if stage.noise_max > sigma:   # independent noise on each cloud breaks exact point pairs
+        if stage.noise_max > sigma and rng.random() < stage.noise_prob:   # breaks exact point pairs
             sigma = float(rng.uniform(sigma, stage.noise_max))
         pair = sample_7scenes_pair(frag.points, rng, num_points=2048, keep_ratio=stage.keep_ratio,
                                    max_angle_deg=stage.max_angle_deg, max_translation=0.5,
@@ -150,8 +152,8 @@ class PairSampler:
                    rng: np.random.Generator) -> dict[str, torch.Tensor]:
         src_n, tgt_n, norm = normalise_pair(source, target)
         R, t_n = norm.to_normalised(T)
-        ps = prepare_cloud(src_n, points, rng, self.with_features)
-        pt = prepare_cloud(tgt_n, points, rng, self.with_features)
+        ps = prepare_cloud(src_n, points, rng, **self.features)
+        pt = prepare_cloud(tgt_n, points, rng, **self.features)
 
         def tt(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).unsqueeze(0)
@@ -204,15 +206,15 @@ class Trainer:
         self.out = Path(cfg.train.out_dir)
         if resume:
             self._resume(Path(resume))
-        with_feat = cfg.model.variant == "ri"
+        features = cfg.model.features()
         if fragments is None:
             from .data.protocols import FragmentCache
             fragments = FragmentCache(cfg.data.cache_dir, cfg.data.num_scenes, cfg.data.fragments_per_scene,
                                       seed=0).load(progress=progress and self.rank == 0)
             val_fragments = FragmentCache(cfg.data.cache_dir, cfg.data.val_scenes, 2,
                                           seed=1).load(progress=progress and self.rank == 0)
-        self.sampler = PairSampler(fragments, cfg.data.noise_sigma, with_feat)
-        vs = PairSampler(val_fragments or fragments, 0.0, with_feat)
+        self.sampler = PairSampler(fragments, cfg.data.noise_sigma, features)
+        vs = PairSampler(val_fragments or fragments, 0.0, features)
         vrng = np.random.default_rng(12345)
         final = cfg.train.stages[-1]
         val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob,

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from ..geometry import FPFH_MAX_NN, FPFH_RADIUS, NORMAL_RADIUS
+
 VARIANTS = ("paper", "ri")
 
 
@@ -33,6 +35,12 @@ class ModelConfig:
     cams_dim: int = 32                   # C5 = C6: CAMS pair embedding width
     chunk_rows: int = 256                # CAMS rows per chunk (bounds memory at large N)
     match_temperature: float = 0.1       # softmax temperature of soft correspondences (training)
+    # Input features ("ri"): normal and FPFH neighbourhoods in normalised units (see
+    # cegc_ros/geometry.py for the measurement behind the defaults). Part of the model: a
+    # checkpoint is only valid with the radii it was trained on.
+    normal_radius: float = NORMAL_RADIUS
+    fpfh_radius: float = FPFH_RADIUS
+    fpfh_max_nn: int = FPFH_MAX_NN
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -44,6 +52,11 @@ class ModelConfig:
         self.agnn_dims = tuple(int(d) for d in self.agnn_dims)
         if len(self.agnn_dims) != 3:
             raise ValueError(f"ModelConfig.agnn_dims needs 3 layer widths, got {self.agnn_dims}")
+
+    def features(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`cegc_ros.geometry.prepare_cloud` for this network."""
+        return {"with_features": self.variant == "ri", "normal_radius": self.normal_radius,
+                "fpfh_radius": self.fpfh_radius, "fpfh_max_nn": self.fpfh_max_nn}
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
