@@ -167,6 +167,35 @@ def test_real_dir_pairs_and_7scenes_protocol(tmp_path):
         assert not np.allclose(b.target - a.target, d[: len(a.target)])   # independent per cloud
 
 
+def test_real_dir_other_layouts_scans_and_a_single_pair(tmp_path):
+    T = _fake_real_dir(tmp_path / "frag")
+    a = np.load(tmp_path / "frag" / "fragments" / "scene" / "a.npy")
+    b = np.load(tmp_path / "frag" / "fragments" / "scene" / "b.npy")
+    scans = tmp_path / "scans_dir"                     # range-scan layout (Stanford bunny)
+    (scans / "scans").mkdir(parents=True)
+    (scans / "gt").mkdir()
+    np.save(scans / "scans" / "s0.npy", a)
+    np.save(scans / "scans" / "s1.npy", b)
+    np.savetxt(scans / "gt" / "q0.txt", T)
+    (scans / "pairs.tsv").write_text("pair_id\tsource\ttarget\nq0\ts0\ts1\n")
+    (pair,) = E.real_pairs(scans)
+    assert pair.pair_id == "q0" and len(pair.source) == len(a)
+    np.testing.assert_allclose(pair.T_gt, T)
+    assert [f.name for f in E.real_fragment_files(scans)] == ["s0.npy", "s1.npy"]
+
+    single = tmp_path / "lidar"                        # one pair (LiDAR folder)
+    single.mkdir()
+    np.save(single / "source.npy", a)
+    np.save(single / "target.npy", b)
+    np.savetxt(single / "T_target_source.txt", T)
+    (pair,) = E.real_pairs(single)
+    assert pair.pair_id == "lidar"
+    np.testing.assert_allclose(pair.target, b.astype(np.float32))
+    np.savetxt(single / "T_target_source.txt", np.eye(3))
+    with pytest.raises(E.EvalError, match="expected a 4x4 matrix"):
+        E.real_pairs(single)
+
+
 def test_cli_fails_with_one_line_reasons(bag, tmp_path, capsys):
     assert E.main([str(bag), "--methods", "icp,nope", "--out", str(tmp_path)]) == 2
     assert "unknown method(s) nope" in capsys.readouterr().err

@@ -3,8 +3,9 @@
 Pairs come from one of three sources:
 
 * a pair bag (``cegc-eval BAG``), as written by ``cegc-make-bag`` or recorded by a user;
-* real fragment pairs with ground truth (``--real-dir DIR``: ``pairs.tsv``, ``fragments/*/*.npy``
-  and ``gt/<pair_id>.txt``, e.g. ``../shared/data/real/sun3d``), scored at 15 deg / 0.3 m;
+* real pairs with ground truth (``--real-dir DIR``, layouts in :data:`REAL_LAYOUTS`: SUN3D
+  fragments ``../shared/data/real/sun3d``, range scans ``.../bunny``, one LiDAR pair
+  ``.../lidar``), scored at 15 deg / 0.3 m unless ``--recall-rot/--recall-trans`` say otherwise;
 * the 7Scenes protocol applied to those real fragments (``--real-dir DIR --real-protocol
   7scenes``): same-fragment crops built by :func:`cegc_ros.data.protocols.sample_7scenes_pair`,
   seeded, scored at 5 deg: the real-data proxy of the paper's 7Scenes benchmark.
@@ -107,16 +108,28 @@ def bag_pairs(path: str | Path) -> list[EvalPair]:
     return out
 
 
+REAL_LAYOUTS = ("pairs.tsv (pair_id, source, target[, scene]) with gt/<pair_id>.txt and the clouds "
+                "in fragments/<scene>/<name>.npy (with a scene column) or scans/<name>.npy; or one "
+                "pair as source.npy, target.npy and T_target_source.txt")
+
+
 def _read_real_table(real_dir: Path) -> list[dict[str, str]]:
     table = real_dir / "pairs.tsv"
     if not table.is_file():
-        raise EvalError(f"{table} not found: --real-dir needs pairs.tsv, fragments/ and gt/")
+        raise EvalError(f"{table} not found: --real-dir needs {REAL_LAYOUTS}")
     lines = [ln.rstrip("\n").split("\t") for ln in table.read_text().splitlines() if ln.strip()]
     header, rows = lines[0], lines[1:]
-    for col in ("pair_id", "scene", "source", "target"):
+    for col in ("pair_id", "source", "target"):
         if col not in header:
             raise EvalError(f"{table} has no column {col!r} (columns: {', '.join(header)})")
     return [dict(zip(header, r)) for r in rows]
+
+
+def _cloud_path(real_dir: Path, row: dict[str, str], key: str) -> Path:
+    """fragments/<scene>/<name>.npy when the table names a scene (SUN3D), else scans/<name>.npy."""
+    if row.get("scene"):
+        return real_dir / "fragments" / row["scene"] / f"{row[key]}.npy"
+    return real_dir / "scans" / f"{row[key]}.npy"
 
 
 def _load_cloud(path: Path) -> np.ndarray:
@@ -128,29 +141,37 @@ def _load_cloud(path: Path) -> np.ndarray:
     return xyz.astype(np.float32)
 
 
+def _load_gt(gt_file: Path) -> np.ndarray:
+    if not gt_file.is_file():
+        raise EvalError(f"ground truth {gt_file} not found")
+    T = np.loadtxt(gt_file, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise EvalError(f"{gt_file} holds shape {T.shape}, expected a 4x4 matrix")
+    return T
+
+
 def real_pairs(real_dir: str | Path) -> list[EvalPair]:
-    """The real fragment pairs listed in ``real_dir/pairs.tsv`` with their ground truth (metres)."""
+    """The real pairs of a folder (see :data:`REAL_LAYOUTS`) with their ground truth (metres)."""
     real_dir = Path(real_dir)
+    single = [real_dir / n for n in ("source.npy", "target.npy", "T_target_source.txt")]
+    if not (real_dir / "pairs.tsv").is_file() and all(f.is_file() for f in single):
+        return [EvalPair(real_dir.name, _load_cloud(single[0]), _load_cloud(single[1]),
+                         _load_gt(single[2]), {"folder": str(real_dir)})]
     out = []
     for row in _read_real_table(real_dir):
-        frag = real_dir / "fragments" / row["scene"]
-        gt_file = real_dir / "gt" / f"{row['pair_id']}.txt"
-        if not gt_file.is_file():
-            raise EvalError(f"ground truth {gt_file} not found")
-        T = np.loadtxt(gt_file, dtype=np.float64)
-        if T.shape != (4, 4):
-            raise EvalError(f"{gt_file} holds shape {T.shape}, expected a 4x4 matrix")
+        T = _load_gt(real_dir / "gt" / f"{row['pair_id']}.txt")
         info = {k: v for k, v in row.items() if k != "pair_id"}
-        out.append(EvalPair(row["pair_id"], _load_cloud(frag / f"{row['source']}.npy"),
-                            _load_cloud(frag / f"{row['target']}.npy"), T, info))
+        out.append(EvalPair(row["pair_id"], _load_cloud(_cloud_path(real_dir, row, "source")),
+                            _load_cloud(_cloud_path(real_dir, row, "target")), T, info))
     return out
 
 
 def real_fragment_files(real_dir: str | Path) -> list[Path]:
     """The distinct fragment files of a real-pairs folder, in a stable order."""
     real_dir = Path(real_dir)
-    files = {real_dir / "fragments" / r["scene"] / f"{r[k]}.npy"
-             for r in _read_real_table(real_dir) for k in ("source", "target")}
+    if not (real_dir / "pairs.tsv").is_file() and (real_dir / "source.npy").is_file():
+        return [real_dir / "source.npy", real_dir / "target.npy"]
+    files = {_cloud_path(real_dir, r, k) for r in _read_real_table(real_dir) for k in ("source", "target")}
     return sorted(files)
 
 
@@ -715,7 +736,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="cegc-eval", description="Evaluate CEGC and Open3D baselines on the pairs of a bag "
         "or on real fragment pairs; writes metrics.json, pairs.csv, report.md, errors.png.")
     p.add_argument("bag", nargs="?", help="pair bag (rosbag2 directory, sqlite3 or mcap)")
-    p.add_argument("--real-dir", help="folder with pairs.tsv, fragments/ and gt/ (instead of a bag)")
+    p.add_argument("--real-dir", help="folder of real pairs with ground truth (instead of a bag): "
+                                      + REAL_LAYOUTS)
     p.add_argument("--real-protocol", choices=("pairs", "7scenes"), default="pairs",
                    help="with --real-dir: the listed pairs (default) or the 7Scenes protocol on "
                         "their fragments")
