@@ -285,3 +285,18 @@ def test_suite_runs_every_readme_evaluation_into_one_summary(tmp_path, capsys):
         assert f"## {name}:" in summary and (out / name / "report.md").is_file()
     assert summary.count("| icp |") == 6
     assert "Gaussian noise sigma 0.01" in doc["real_7scenes_noise"]["source"]
+
+
+def test_ablation_table_covers_the_chosen_sets(tmp_path, tiny_checkpoint, capsys):
+    from cegc_ros.tools import ablation
+
+    _fake_real_dir(tmp_path / "real")
+    assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--pairs", "1", "--solvers", "robust",
+                          "--sets", "real,real_noise", "--real-dir", str(tmp_path / "real")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    row = json.loads(out[0])
+    assert row["model"] == "tiny" and set(row) == {"model", "solver", "real", "real_noise"}
+    assert 0.0 <= row["real_noise"]["recall5"] <= 1.0 and row["real_noise"]["mean"] >= 0.0
+    assert out[-1].startswith("| tiny | robust |")
+    assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--sets", "real,bogus"]) == 2
+    assert "unknown set(s) bogus" in capsys.readouterr().err

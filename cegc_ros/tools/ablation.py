@@ -4,7 +4,9 @@
         --checkpoint "ri@200=runs/ablation_ri/best.pt" [--pairs 20] [--real-dir ../shared/data/real/sun3d]
 
 Synthetic pairs: the 7scenes test split (held-out rooms), indices 100 .. 100 + pairs - 1.
-Real pairs: the 7Scenes protocol cut from the real SUN3D fragments (seed 7), evaluation only.
+Real pairs: the 7Scenes protocol cut from the real SUN3D fragments (seed 7), evaluation only;
+``real`` as cut, ``real_noise`` with the paper's Gaussian noise (sigma 0.01, each cloud) and
+``real_resample`` with the target an independent draw (no shared points); ``--sets`` picks.
 Prints one JSON line per (checkpoint, solver) and a markdown table.
 """
 
@@ -22,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=20)
     ap.add_argument("--solvers", default="svd,robust")
     ap.add_argument("--real-dir", default="../shared/data/real/sun3d")
+    ap.add_argument("--sets", default="synthetic,real,real_noise,real_resample",
+                    help="comma-separated subset of synthetic,real,real_noise,real_resample")
     args = ap.parse_args(argv)
     try:
         cks = dict(c.split("=", 1) for c in args.checkpoint)
@@ -35,11 +39,20 @@ def main(argv: list[str] | None = None) -> int:
     from cegc_ros.engine import CheckpointError, Registrar
     from cegc_ros.metrics import rotation_error_deg
 
-    sets = {"synthetic": [make_pair("7scenes", "test", 100 + i) for i in range(args.pairs)]}
+    wanted = [s.strip() for s in args.sets.split(",") if s.strip()]
+    unknown = set(wanted) - {"synthetic", "real", "real_noise", "real_resample"}
+    if unknown:
+        print(f"ablation: unknown set(s) {', '.join(sorted(unknown))}", file=sys.stderr)
+        return 2
+    sets = {}
+    if "synthetic" in wanted:
+        sets["synthetic"] = [make_pair("7scenes", "test", 100 + i) for i in range(args.pairs)]
     frags = sorted(Path(args.real_dir).glob("fragments/*/*.npy"))
-    if frags:
-        sets["real"] = [sample_7scenes_pair(np.load(frags[i % len(frags)]), np.random.default_rng([7, i]))
-                        for i in range(args.pairs)]
+    real_kw = {"real": {}, "real_noise": {"noise_sigma": 0.01}, "real_resample": {"resample_target": True}}
+    for name, kw in real_kw.items():
+        if name in wanted and frags:
+            sets[name] = [sample_7scenes_pair(np.load(frags[i % len(frags)]), np.random.default_rng([7, i]), **kw)
+                          for i in range(args.pairs)]
     rows = []
     for name, path in cks.items():
         for solver in args.solvers.split(","):
