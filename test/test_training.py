@@ -102,3 +102,27 @@ def test_noise_curriculum_breaks_exact_point_pairs_only_for_its_share():
     assert _exact_shared(sampler.sample(np.random.default_rng(0), clean)) > 0.3
     assert _exact_shared(sampler.sample(np.random.default_rng(0), never)) > 0.3
     assert _exact_shared(sampler.sample(np.random.default_rng(0), noisy)) == 0.0
+
+
+def test_bf16_autocast_training_runs_with_the_svd_kept_in_fp32(tmp_path):
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "bf16", max_steps=2)
+    cfg.train.bf16 = True
+    trainer = Trainer(cfg, device="cpu", fragments=frags, val_fragments=frags, progress=False)
+    trainer.run()
+    with open(tmp_path / "bf16" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and all(np.isfinite(float(r["loss"])) for r in rows)
+
+
+def test_weighted_kabsch_inside_bf16_autocast_matches_fp32():
+    from cegc_ros.model.svd import weighted_kabsch
+    g = torch.Generator().manual_seed(0)
+    src = torch.rand(1, 50, 3, generator=g)
+    R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    tgt = src @ R.T + 0.1
+    w = torch.rand(1, 50, generator=g)
+    with torch.autocast(device_type="cpu", dtype=torch.bfloat16):
+        R_est, t_est, valid = weighted_kabsch(src, tgt, w)
+    assert R_est.dtype == torch.float32 and bool(valid[0])
+    assert torch.allclose(R_est[0], R, atol=1e-4) and torch.allclose(t_est[0], torch.full((3,), 0.1), atol=1e-4)

@@ -19,8 +19,14 @@ def weighted_kabsch(src: Tensor, tgt: Tensor, weights: Tensor, eps: float = 1e-6
         ~0, or the weighted points are collinear / coincident so the rotation is not determined)
         R = I, t = weighted centroid difference (or 0) and valid is False; nothing is NaN.
 
-    The solve always runs in float32 (``torch.linalg.svd`` has no bf16 kernel on CPU).
+    The solve always runs in float32, autocast off (``torch.linalg.svd`` and ``torch.det`` have no
+    bf16 kernel on CPU), so it is safe inside a bf16 autocast region.
     """
+    with torch.autocast(device_type=src.device.type, enabled=False):
+        return _weighted_kabsch_fp32(src, tgt, weights, eps)
+
+
+def _weighted_kabsch_fp32(src: Tensor, tgt: Tensor, weights: Tensor, eps: float) -> tuple[Tensor, Tensor, Tensor]:
     src = src.float()
     tgt = tgt.float()
     w = weights.float().clamp_min(0.0)                                   # (B, M)

@@ -36,7 +36,7 @@ def _one(points: int, repeats: int, threads: int) -> dict:
     pts = rng.uniform(-0.5, 0.5, (points, 3)).astype(np.float32)
     pts[: points // 3, 2] = -0.5
     pts[points // 3: 2 * points // 3, 0] = -0.5
-    normals, desc = normals_and_fpfh(pts)
+    normals, desc = normals_and_fpfh(pts, model.cfg.normal_radius, model.cfg.fpfh_radius, model.cfg.fpfh_max_nn)
 
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(a).unsqueeze(0)
