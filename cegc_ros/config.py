@@ -41,6 +41,15 @@ class EngineConfig:
     checkpoint: str = field(default="", metadata=_meta(
         "Path of a CEGC checkpoint (.pt); empty uses the weights shipped with the package.",
         dynamic=False))
+    second_checkpoint: str = field(default="", metadata=_meta(
+        "Second network of the cascade, for clouds that share no exact points (independent "
+        "scans, noise, resampling): empty uses the shipped cegc_7scenes_noise.pt, 'none' runs "
+        "the first network only. See cascade_min_coincident.", dynamic=False))
+    cascade_min_coincident: float = field(default=0.1, metadata=_meta(
+        "The first network's answer is kept when at least this share of the source lands within "
+        "1e-3 of the normalisation scale of a target point (clouds cut from one point set, as "
+        "in the 7Scenes protocol); otherwise the second network runs and its answer is used.",
+        0.0, 1.0))
     device: str = field(default="auto", metadata=_meta(
         "Torch device: 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.", dynamic=False))
     solver: str = field(default="robust", metadata=_meta(

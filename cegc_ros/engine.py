@@ -29,6 +29,8 @@ from .solver import robust_pose
 
 CHECKPOINT_FORMAT = 1
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes.pt"
+DEFAULT_SECOND_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes_noise.pt"
+COINCIDENT_TOL = 1e-3    # of the normalisation scale: "the same point" for the cascade's test
 
 
 class CheckpointError(RuntimeError):
@@ -53,6 +55,8 @@ class RegistrationResult:
     reason: str = ""                     # why not valid; "" when valid
     refined: str = "none"                # "none" | "icp"
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
+    network: str = "first"               # which network of the cascade answered: "first" | "second"
+    coincident: float = 0.0              # share of source points on a target point under the first answer
 
 
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
@@ -153,8 +157,10 @@ class Registrar:
     MIN_POINTS = 16
 
     def __init__(self, model: Any, device: str, checkpoint_path: str, metadata: dict[str, Any],
-                 preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
+                 preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None,
+                 second_model: Any = None) -> None:
         self.model = model
+        self.second_model = second_model
         self.device = device
         self.checkpoint_path = checkpoint_path
         self.metadata = metadata
@@ -175,9 +181,14 @@ class Registrar:
         if engine.threads > 0:
             torch.set_num_threads(engine.threads)
         model, meta = load_checkpoint(path, dev)
+        second = None
+        if engine.second_checkpoint != "none":
+            second_path = engine.second_checkpoint or DEFAULT_SECOND_WEIGHTS
+            second, _ = load_checkpoint(second_path, dev)
+            engine.second_checkpoint = str(second_path)
         engine.checkpoint = str(path)
         engine.device = dev
-        return cls(model, dev, str(path), meta, preprocess, engine)
+        return cls(model, dev, str(path), meta, preprocess, engine, second)
 
     def update(self, preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
         """Change settings; they apply from the next register() call."""
@@ -185,9 +196,9 @@ class Registrar:
             if preprocess is not None:
                 self.preprocess = copy.deepcopy(preprocess)
             if engine is not None:
-                keep = (self.engine.checkpoint, self.engine.device)
+                keep = (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device)
                 self.engine = copy.deepcopy(engine)
-                self.engine.checkpoint, self.engine.device = keep
+                self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device = keep
 
     @property
     def uses_features(self) -> bool:
@@ -200,8 +211,9 @@ class Registrar:
 
     def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
-        import torch
-        timings: dict[str, float] = {}
+        """Cascade: the first network; when its answer does not put the clouds' shared points on
+        top of each other (no exact shared points: independent scans, noise, resampling), the
+        second network, whose answer is then returned."""
         t0 = time.perf_counter()
         src = finite_cloud("source", source_xyz, self.MIN_POINTS)
         tgt = finite_cloud("target", target_xyz, self.MIN_POINTS)
@@ -213,21 +225,45 @@ class Registrar:
                     raise ValueError(f"{name} has {len(c)} points after the {pre.voxel_size} m voxel grid, "
                                      f"at least {self.MIN_POINTS} are needed")
         src_n, tgt_n, norm = normalise_pair(src, tgt)
+        timings = {"preprocess": time.perf_counter() - t0}
+        res = self._solve(self.model, src, tgt, src_n, tgt_n, norm, pre, eng, timings)
+        if self.second_model is not None:
+            t1 = time.perf_counter()
+            # The test needs the exact alignment ICP gives; without engine.refine it refines privately.
+            T = res.T_target_source if res.refined == "icp" or not res.valid else \
+                self._icp(src, tgt, res.T_target_source, norm, eng)
+            res.coincident = _coincident(src, tgt, T, COINCIDENT_TOL * norm.scale) if res.valid else 0.0
+            timings["cascade_test"] = time.perf_counter() - t1
+            if res.coincident < eng.cascade_min_coincident:
+                first = res
+                res = self._solve(self.second_model, src, tgt, src_n, tgt_n, norm, pre, eng, timings,
+                                  prefix="second_")
+                res.network, res.coincident = "second", first.coincident
+        res.timings = timings
+        timings["total"] = time.perf_counter() - t0
+        return res
+
+    def _solve(self, model: Any, src: np.ndarray, tgt: np.ndarray, src_n: np.ndarray, tgt_n: np.ndarray,
+               norm: Normalisation, pre: PreprocessConfig, eng: EngineConfig, timings: dict[str, float],
+               prefix: str = "") -> RegistrationResult:
+        """One network's answer: features, forward, pose, (ICP), metres."""
+        import torch
+        t0 = time.perf_counter()
         rng = np.random.default_rng(pre.seed)
-        features = self.model.cfg.features()
+        features = model.cfg.features()
         ps = prepare_cloud(src_n, pre.num_points, rng, **features)
         pt = prepare_cloud(tgt_n, pre.num_points, rng, **features)
         t1 = time.perf_counter()
-        timings["preprocess"] = t1 - t0
+        timings[prefix + "features"] = t1 - t0
 
         def tens(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).unsqueeze(0).to(self.device)
 
         with torch.inference_mode():
-            out = self.model(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
-                             tens(ps.desc), tens(pt.desc))
+            out = model(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
+                        tens(ps.desc), tens(pt.desc))
         t2 = time.perf_counter()
-        timings["network"] = t2 - t1
+        timings[prefix + "network"] = t2 - t1
 
         sel = out.src_idx[0].cpu().numpy()
         corr = np.stack([sel, out.match[0].cpu().numpy()], axis=1).astype(np.int64)
@@ -242,7 +278,7 @@ class Registrar:
             R = out.R[0].double().cpu().numpy()
             t_n = out.t[0].double().cpu().numpy()
             valid = bool(out.valid[0])
-        timings["solver"] = time.perf_counter() - t2
+        timings[prefix + "solver"] = time.perf_counter() - t2
         T = norm.to_metres(R, t_n)
         src_m = (ps.points.astype(np.float64) * norm.scale + norm.c_source)
         tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
@@ -258,16 +294,15 @@ class Registrar:
             t3 = time.perf_counter()
             T = self._icp(src, tgt, T, norm, eng)
             refined = "icp"
-            timings["refine"] = time.perf_counter() - t3
+            timings[prefix + "refine"] = time.perf_counter() - t3
         inlier = 2.0 * spacing_n * norm.scale                         # metres
         fitness = _fitness(src_m, tgt_m, T, inlier)
         cov = covariance_from_correspondences(src_m[corr[:, 0]], tgt_m[corr[:, 1]], weights, T)
-        timings["total"] = time.perf_counter() - t0
         return RegistrationResult(
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
             source_overlap=s_ov, target_overlap=t_ov, correspondences=corr, weights=weights,
             covariance=cov, fitness=fitness, inlier_distance=inlier, valid=valid, reason=reason,
-            refined=refined, timings=timings)
+            refined=refined)
 
     @staticmethod
     def _icp(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, norm: Normalisation,
@@ -290,6 +325,14 @@ def _median_spacing(points: np.ndarray) -> float:
     from scipy.spatial import cKDTree
     d, _ = cKDTree(points).query(points, k=2)
     return float(np.median(d[:, 1]))
+
+
+def _coincident(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, tol: float, max_points: int = 4000) -> float:
+    """Share of source points (at most max_points, evenly strided) within tol of a target point after T."""
+    from scipy.spatial import cKDTree
+    step = max(1, len(src) // max_points)
+    d, _ = cKDTree(tgt).query(src[::step] @ T[:3, :3].T + T[:3, 3], k=1)
+    return float((d <= tol).mean())
 
 
 def _fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:

@@ -352,6 +352,7 @@ def _make_node_class():
             self._latency: deque[float] = deque(maxlen=win)   # pair complete -> pose out (s)
             self._engine_time: deque[float] = deque(maxlen=win)  # Registrar.register (s)
             self._last_fitness = float("nan")
+            self._last_network = "none"
             self._last_frames: dict[str, str] = {}
             self._engine_dirty = False
 
@@ -574,6 +575,7 @@ def _make_node_class():
             if not result.valid:
                 raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
             self._last_fitness = float(result.fitness)
+            self._last_network = result.network
             if result.fitness < out.min_fitness:
                 raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
                                f"output.min_fitness {out.min_fitness:.3f}")
@@ -639,6 +641,7 @@ def _make_node_class():
             values["device"] = str(getattr(self.registrar, "device", "?"))
             values["checkpoint"] = str(getattr(self.registrar, "checkpoint_path", "?"))
             values["last_fitness"] = f"{self._last_fitness:.4f}"
+            values["last_network"] = self._last_network       # cascade: "first" | "second"
             values["busy"] = str(self._busy).lower()
             return values
 

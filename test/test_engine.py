@@ -206,3 +206,31 @@ def test_checkpoint_carries_its_feature_radii_and_old_ones_get_the_legacy_radii(
     torch.save(payload, tmp_path / "old.pt")
     model, _ = load_checkpoint(tmp_path / "old.pt")
     assert {k: getattr(model.cfg, k) for k in LEGACY_FEATURES} == LEGACY_FEATURES
+
+
+def _room_pair(noise: float, seed: int = 5):
+    """A box room with furniture cut twice from one point set (7Scenes protocol), moved."""
+    from cegc_ros.data.protocols import sample_7scenes_pair
+    return sample_7scenes_pair(scene(6000, seed=seed), np.random.default_rng(seed), num_points=1536,
+                               noise_sigma=noise)
+
+
+def test_cascade_keeps_the_first_network_for_shared_points_and_hands_noisy_pairs_to_the_second():
+    pre = PreprocessConfig(num_points=512)
+    reg = Registrar.from_checkpoint(None, device="cpu", preprocess=pre)      # the shipped pair of networks
+    assert reg.second_model is not None and reg.engine.second_checkpoint.endswith("cegc_7scenes_noise.pt")
+    clean, noisy = _room_pair(0.0), _room_pair(0.01)
+    a = reg.register(clean.source, clean.target)
+    assert a.network == "first" and a.coincident > 0.3                # exact shared points found
+    assert "second_network" not in a.timings
+    b = reg.register(noisy.source, noisy.target)
+    assert b.network == "second" and b.coincident < 0.05 and "second_network" in b.timings
+    # 'none' switches the cascade off: the first network answers everything.
+    solo = Registrar.from_checkpoint(None, device="cpu", preprocess=pre,
+                                     engine=EngineConfig(second_checkpoint="none"))
+    assert solo.second_model is None
+    c = solo.register(noisy.source, noisy.target)
+    assert c.network == "first" and "second_network" not in c.timings
+    # A missing second checkpoint is a CheckpointError naming the file.
+    with pytest.raises(CheckpointError, match="nope.pt"):
+        Registrar.from_checkpoint(None, device="cpu", engine=EngineConfig(second_checkpoint="/nope.pt"))
