@@ -57,7 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, path in cks.items():
         for solver in args.solvers.split(","):
             try:
-                reg = Registrar.from_checkpoint(path, device="cpu", engine=EngineConfig(solver=solver))
+                # Each network alone: no cascade.
+                reg = Registrar.from_checkpoint(path, device="cpu",
+                                                engine=EngineConfig(solver=solver, second_checkpoint="none"))
             except (CheckpointError, ValueError) as err:
                 print(f"ablation: {err}", file=sys.stderr)
                 return 1
