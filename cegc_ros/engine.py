@@ -213,7 +213,7 @@ class Registrar:
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
         """Cascade: the first network; when its answer does not put the clouds' shared points on
         top of each other (no exact shared points: independent scans, noise, resampling), the
-        second network, whose answer is then returned."""
+        second network, whose answer is then returned unless it is invalid and the first is not."""
         t0 = time.perf_counter()
         src = finite_cloud("source", source_xyz, self.MIN_POINTS)
         tgt = finite_cloud("target", target_xyz, self.MIN_POINTS)
@@ -236,9 +236,11 @@ class Registrar:
             timings["cascade_test"] = time.perf_counter() - t1
             if res.coincident < eng.cascade_min_coincident:
                 first = res
-                res = self._solve(self.second_model, src, tgt, src_n, tgt_n, norm, pre, eng, timings,
-                                  prefix="second_")
-                res.network, res.coincident = "second", first.coincident
+                second = self._solve(self.second_model, src, tgt, src_n, tgt_n, norm, pre, eng, timings,
+                                     prefix="second_")
+                second.network, second.coincident = "second", first.coincident
+                # An invalid second answer (no pose found) does not replace a valid first one.
+                res = second if second.valid or not first.valid else first
         res.timings = timings
         timings["total"] = time.perf_counter() - t0
         return res

@@ -234,3 +234,19 @@ def test_cascade_keeps_the_first_network_for_shared_points_and_hands_noisy_pairs
     # A missing second checkpoint is a CheckpointError naming the file.
     with pytest.raises(CheckpointError, match="nope.pt"):
         Registrar.from_checkpoint(None, device="cpu", engine=EngineConfig(second_checkpoint="/nope.pt"))
+
+
+def test_an_invalid_second_answer_does_not_replace_a_valid_first_one(monkeypatch):
+    reg = Registrar.from_checkpoint(None, device="cpu", preprocess=PreprocessConfig(num_points=512))
+    noisy = _room_pair(0.01)
+    original = Registrar._solve
+
+    def second_fails(self, model, *args, prefix="", **kw):
+        res = original(self, model, *args, prefix=prefix, **kw)
+        if prefix == "second_":
+            res.valid, res.reason = False, "forced"
+        return res
+
+    monkeypatch.setattr(Registrar, "_solve", second_fails)
+    res = reg.register(noisy.source, noisy.target)
+    assert res.valid and res.network == "first" and "second_network" in res.timings
