@@ -147,32 +147,3 @@ def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generato
     sel = subsample(pts, num_points, rng)
     return PreparedCloud(pts[sel], normals[sel], desc[sel], sup[sel])
 
-
-def shared_point_fraction(source: np.ndarray, target: np.ndarray, k: int = 3, rel_tol: float = 1e-5,
-                          max_points: int = 2000, seed: int = 0) -> float:
-    """Share of source points that also exist, exactly, in the target (up to a rigid motion).
-
-    Two clouds cut from one point set (the 7Scenes protocol) share points whose distances to
-    their k nearest neighbours agree to float precision; two independent measurements (real
-    sensors, noise, resampling) share none. Each point's sorted k-nearest-neighbour distances
-    form a rotation-invariant signature; a source point counts when a target signature lies
-    within ``rel_tol`` x the clouds' extent of its own. (N, 3), (M, 3) -> [0, 1].
-    """
-    from scipy.spatial import cKDTree
-    src = np.asarray(source, np.float64)
-    tgt = np.asarray(target, np.float64)
-    if len(src) <= k or len(tgt) <= k:
-        return 0.0
-    extent = max(float(np.ptp(src, axis=0).max()), float(np.ptp(tgt, axis=0).max()), 1e-12)
-
-    def signatures(c: np.ndarray) -> np.ndarray:
-        d, _ = cKDTree(c).query(c, k=k + 1)
-        return d[:, 1:] / extent
-
-    if len(src) > max_points:
-        rows = np.random.default_rng(seed).choice(len(src), max_points, replace=False)
-        sig_s = signatures(src)[rows]
-    else:
-        sig_s = signatures(src)
-    d, _ = cKDTree(signatures(tgt)).query(sig_s, k=1)
-    return float((d <= rel_tol).mean())
