@@ -200,10 +200,6 @@ class Registrar:
                 self.engine = copy.deepcopy(engine)
                 self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device = keep
 
-    @property
-    def uses_features(self) -> bool:
-        return self.model.cfg.variant == "ri"
-
     def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
         """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
         with self._lock:
@@ -331,10 +327,7 @@ def _median_spacing(points: np.ndarray) -> float:
 
 def _coincident(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, tol: float, max_points: int = 4000) -> float:
     """Share of source points (at most max_points, evenly strided) within tol of a target point after T."""
-    from scipy.spatial import cKDTree
-    step = max(1, len(src) // max_points)
-    d, _ = cKDTree(tgt).query(src[::step] @ T[:3, :3].T + T[:3, 3], k=1)
-    return float((d <= tol).mean())
+    return _fitness(src[::max(1, len(src) // max_points)], tgt, T, tol)
 
 
 def _fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:

@@ -146,4 +146,3 @@ def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generato
         desc = np.zeros((len(pts), 33), np.float32)
     sel = subsample(pts, num_points, rng)
     return PreparedCloud(pts[sel], normals[sel], desc[sel], sup[sel])
-

@@ -35,9 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from cegc_ros.config import EngineConfig
-    from cegc_ros.data.protocols import make_pair, sample_7scenes_pair
+    from cegc_ros.data.protocols import make_pair
     from cegc_ros.engine import CheckpointError, Registrar
     from cegc_ros.metrics import rotation_error_deg
+    from cegc_ros.tools.evaluate import real_7scenes_pairs
 
     wanted = [s.strip() for s in args.sets.split(",") if s.strip()]
     unknown = set(wanted) - {"synthetic", "real", "real_noise", "real_resample"}
@@ -46,13 +47,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     sets = {}
     if "synthetic" in wanted:
-        sets["synthetic"] = [make_pair("7scenes", "test", 100 + i) for i in range(args.pairs)]
-    frags = sorted(Path(args.real_dir).glob("fragments/*/*.npy"))
+        sets["synthetic"] = [(q.source, q.target, q.T_target_source)
+                             for q in (make_pair("7scenes", "test", 100 + i) for i in range(args.pairs))]
     real_kw = {"real": {}, "real_noise": {"noise_sigma": 0.01}, "real_resample": {"resample_target": True}}
     for name, kw in real_kw.items():
-        if name in wanted and frags:
-            sets[name] = [sample_7scenes_pair(np.load(frags[i % len(frags)]), np.random.default_rng([7, i]), **kw)
-                          for i in range(args.pairs)]
+        if name in wanted and (Path(args.real_dir) / "pairs.tsv").is_file():
+            sets[name] = [(q.source, q.target, q.T_gt) for q in real_7scenes_pairs(args.real_dir, args.pairs, 2048, 7, **kw)]
     rows = []
     for name, path in cks.items():
         for solver in args.solvers.split(","):
@@ -65,9 +65,8 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             row = {"model": name, "solver": solver}
             for sname, pairs in sets.items():
-                e = np.array([float(rotation_error_deg(p.T_target_source[:3, :3],
-                                                       reg.register(p.source, p.target).T_target_source[:3, :3]))
-                              for p in pairs])
+                e = np.array([float(rotation_error_deg(T[:3, :3], reg.register(src, tgt).T_target_source[:3, :3]))
+                              for src, tgt, T in pairs])
                 row[sname] = {"recall5": float(np.mean(e < 5)), "mean": float(e.mean()), "median": float(np.median(e))}
             print(json.dumps(row), flush=True)
             rows.append(row)

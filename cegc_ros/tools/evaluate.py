@@ -150,13 +150,21 @@ def _load_gt(gt_file: Path) -> np.ndarray:
     return T
 
 
+def _single_pair(real_dir: Path) -> tuple[Path, Path] | None:
+    """(source.npy, target.npy) of a one-pair folder (no pairs.tsv, e.g. the LiDAR pair), else None."""
+    src, tgt = real_dir / "source.npy", real_dir / "target.npy"
+    if not (real_dir / "pairs.tsv").is_file() and src.is_file() and tgt.is_file():
+        return src, tgt
+    return None
+
+
 def real_pairs(real_dir: str | Path) -> list[EvalPair]:
     """The real pairs of a folder (see :data:`REAL_LAYOUTS`) with their ground truth (metres)."""
     real_dir = Path(real_dir)
-    single = [real_dir / n for n in ("source.npy", "target.npy", "T_target_source.txt")]
-    if not (real_dir / "pairs.tsv").is_file() and all(f.is_file() for f in single):
+    single = _single_pair(real_dir)
+    if single is not None:
         return [EvalPair(real_dir.name, _load_cloud(single[0]), _load_cloud(single[1]),
-                         _load_gt(single[2]), {"folder": str(real_dir)})]
+                         _load_gt(real_dir / "T_target_source.txt"), {"folder": str(real_dir)})]
     out = []
     for row in _read_real_table(real_dir):
         T = _load_gt(real_dir / "gt" / f"{row['pair_id']}.txt")
@@ -169,8 +177,9 @@ def real_pairs(real_dir: str | Path) -> list[EvalPair]:
 def real_fragment_files(real_dir: str | Path) -> list[Path]:
     """The distinct fragment files of a real-pairs folder, in a stable order."""
     real_dir = Path(real_dir)
-    if not (real_dir / "pairs.tsv").is_file() and (real_dir / "source.npy").is_file():
-        return [real_dir / "source.npy", real_dir / "target.npy"]
+    single = _single_pair(real_dir)
+    if single is not None:
+        return list(single)
     files = {_cloud_path(real_dir, r, k) for r in _read_real_table(real_dir) for k in ("source", "target")}
     return sorted(files)
 
