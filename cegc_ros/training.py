@@ -56,6 +56,8 @@ class DataConfig:
     val_resample_prob: float = 0.0   # share of validation pairs whose target is an independent resample
     noise_sigma: float = 0.002   # unit-box units (7Scenes protocol), on top of the rendered sensor noise
     val_noise_max: float = 0.0   # validation pairs' noise: as Stage.noise_max
+    val_fragments_per_scene: int = 2   # fragments rendered per validation scene
+    val_fragments_prob: float = 0.0    # share of validation pairs that are two-fragment pairs
 
 
 @dataclass
@@ -211,14 +213,14 @@ class Trainer:
             from .data.protocols import FragmentCache
             fragments = FragmentCache(cfg.data.cache_dir, cfg.data.num_scenes, cfg.data.fragments_per_scene,
                                       seed=0).load(progress=progress and self.rank == 0)
-            val_fragments = FragmentCache(cfg.data.cache_dir, cfg.data.val_scenes, 2,
+            val_fragments = FragmentCache(cfg.data.cache_dir, cfg.data.val_scenes, cfg.data.val_fragments_per_scene,
                                           seed=1).load(progress=progress and self.rank == 0)
         self.sampler = PairSampler(fragments, cfg.data.noise_sigma, features)
         vs = PairSampler(val_fragments or fragments, 0.0, features)
         vrng = np.random.default_rng(12345)
         final = cfg.train.stages[-1]
         val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob,
-                          noise_max=cfg.data.val_noise_max)
+                          fragments_prob=cfg.data.val_fragments_prob, noise_max=cfg.data.val_noise_max)
         self.val_batches = [vs.sample(vrng, val_stage) for _ in range(cfg.data.val_pairs)]
 
     def _resume(self, path: Path) -> None:

@@ -126,3 +126,29 @@ def test_weighted_kabsch_inside_bf16_autocast_matches_fp32():
         R_est, t_est, valid = weighted_kabsch(src, tgt, w)
     assert R_est.dtype == torch.float32 and bool(valid[0])
     assert torch.allclose(R_est[0], R, atol=1e-4) and torch.allclose(t_est[0], torch.full((3,), 0.1), atol=1e-4)
+
+
+def test_validation_mixes_in_two_fragment_pairs_with_their_relative_pose(tmp_path):
+    from scipy.spatial.transform import Rotation
+    pts = room(7)
+    T_b = np.eye(4)
+    T_b[:3, :3] = Rotation.from_euler("xyz", [10, -20, 70], degrees=True).as_matrix()
+    T_b[:3, 3] = [0.2, -0.1, 0.3]
+    local_b = ((pts - T_b[:3, 3]) @ T_b[:3, :3]).astype(np.float32)     # same surfaces, fragment b's frame
+    scene = [SimpleNamespace(points=pts, T_world_fragment=np.eye(4), scene_seed=5, index=0),
+             SimpleNamespace(points=local_b, T_world_fragment=T_b, scene_seed=5, index=1)]
+    rel = {0: T_b[:3, :3].T, 1: T_b[:3, :3]}        # source 0 -> target 1, or 1 -> 0
+
+    def val_rotations(prob: float) -> list[np.ndarray]:
+        cfg = tiny_config(tmp_path / f"v{prob}", max_steps=1)
+        cfg.data.val_fragments_prob = prob
+        cfg.data.val_noise_max = 0.0
+        cfg.data.val_pairs = 4
+        trainer = Trainer(cfg, device="cpu", fragments=scene, val_fragments=scene, progress=False)
+        return [b["R"][0].double().numpy() for b in trainer.val_batches]
+
+    def is_fragment_pose(R: np.ndarray) -> bool:
+        return any(np.allclose(R, r, atol=1e-5) for r in rel.values())
+
+    assert all(is_fragment_pose(R) for R in val_rotations(1.0))
+    assert not any(is_fragment_pose(R) for R in val_rotations(0.0))
