@@ -73,6 +73,7 @@ class TrainConfig:
     log_every: int = 10
     bf16: bool = False
     threads: int = 0
+    workers: int = 0     # DataLoader processes preparing pairs while the network trains (0: in the loop)
     stages: list[Stage] = field(default_factory=lambda: [
         Stage(600, 15.0, 384), Stage(2000, 30.0, 512, resample_prob=0.3),
         Stage(10**9, 45.0, 512, resample_prob=0.5)])
@@ -163,6 +164,26 @@ class PairSampler:
                 "src_d": tt(ps.desc), "tgt_d": tt(pt.desc), "R": tt(R), "t": tt(t_n)}
 
 
+class PairStream(torch.utils.data.IterableDataset):
+    """Training pairs from ``start`` on; pair ``step`` comes from a generator seeded by
+    (seed, rank, step), so the stream is the same with or without DataLoader workers and
+    after a resume. With W workers, worker k prepares steps start + k, start + k + W, ...;
+    the DataLoader takes them round-robin, i.e. in step order."""
+
+    def __init__(self, sampler: PairSampler, cfg: TrainConfig, rank: int, start: int) -> None:
+        super().__init__()
+        self.sampler, self.cfg, self.rank, self.start = sampler, cfg, rank, start
+
+    def __iter__(self) -> Any:
+        info = torch.utils.data.get_worker_info()
+        k, w = (info.id, info.num_workers) if info is not None else (0, 1)
+        step = self.start + k
+        while True:
+            rng = np.random.default_rng([self.cfg.seed, self.rank, step])
+            yield self.sampler.sample(rng, _stage(self.cfg, step))
+            step += w
+
+
 def _stage(cfg: TrainConfig, step: int) -> Stage:
     for s in cfg.stages:
         if step < s.until_step:
@@ -204,7 +225,6 @@ class Trainer:
         self.step = 0
         self.elapsed = 0.0
         self.best = math.inf
-        self.rng = np.random.default_rng([cfg.train.seed, self.rank])
         self.out = Path(cfg.train.out_dir)
         if resume:
             self._resume(Path(resume))
@@ -239,7 +259,6 @@ class Trainer:
             meta = state.get("metadata", {})
             self.step = int(meta.get("step", 0))
             self.elapsed = 60.0 * float(meta.get("elapsed_minutes", 0.0))
-        self.rng = np.random.default_rng([self.cfg.train.seed, self.rank, self.step])
 
     def _save_last(self) -> None:
         if self.rank != 0:
@@ -288,6 +307,12 @@ class Trainer:
             from tqdm import tqdm
             bar = tqdm(total=int(cfg.max_minutes * 60), initial=int(min(self.elapsed, cfg.max_minutes * 60)),
                        unit="s", desc="train")
+        stream = PairStream(self.sampler, cfg, self.rank, self.step)
+        if cfg.workers > 0:
+            batches = iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers,
+                                                       prefetch_factor=4))
+        else:
+            batches = iter(stream)
         self.model.train()
         last_ckpt = time.perf_counter()
         t_prev = time.perf_counter()
@@ -295,7 +320,7 @@ class Trainer:
         val: dict[str, float] = {}
         while self.step < cfg.max_steps and self.elapsed < cfg.max_minutes * 60:
             stage = _stage(cfg, self.step)
-            b = self.sampler.sample(self.rng, stage)
+            b = next(batches)
             with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=cfg.bf16):
                 out, bb = _forward(self.net, b, self.device)
             loss, parts = cegc_loss(out, bb["src"], bb["tgt"], bb["R"], bb["t"], self.cfg.loss,

@@ -1,10 +1,16 @@
 """Benchmark: seconds per training step (forward + backward + RAdam step), fp32 against bf16 autocast.
 
     python -m cegc_ros.tools.bench_train [--points 256,384] [--steps 20] [--threads 0]
+    python -m cegc_ros.tools.bench_train --loop CONFIG [--workers 0,1] [--steps 150]
 
 Batch 1 on the same synthetic 7Scenes-protocol training pairs for every setting, the default
 ``ModelConfig`` and ``LossConfig`` (what ``cegc-train`` runs). Pair preparation (normals, FPFH)
 happens before the clock starts. Prints one JSON line per (points, precision) and a markdown table.
+
+``--loop`` measures the whole training loop instead (pair preparation included) of a training
+config, once per DataLoader worker count (``train.workers``): steps per second over ``--steps``
+steps after the trainer is built, no validation, into a temporary folder; the fragments come
+from the config's cache (rendered there first when missing).
 """
 
 from __future__ import annotations
@@ -49,12 +55,50 @@ def measure(points: int, bf16: bool, steps: int, pairs: list) -> dict:
             "median_s": round(float(np.median(times)), 3), "p90_s": round(float(np.percentile(times, 90)), 3)}
 
 
+def measure_loop(config: str, workers: int, steps: int) -> dict:
+    import tempfile
+
+    from cegc_ros.training import Config, Trainer
+
+    cfg = Config.from_yaml(config)
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg.train.out_dir, cfg.train.workers = tmp, workers
+        cfg.train.max_steps, cfg.train.val_every = steps, 10**9
+        cfg.train.max_minutes, cfg.data.val_pairs = 10**6, 1
+        trainer = Trainer(cfg, progress=False)
+        t0 = time.perf_counter()
+        trainer.run()
+        wall = time.perf_counter() - t0
+    return {"config": config, "workers": workers, "steps": steps, "steps_per_s": round(steps / wall, 2),
+            "s_per_step": round(wall / steps, 3)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench_train", description=__doc__.splitlines()[0])
     ap.add_argument("--points", default="256,384")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    ap.add_argument("--loop", metavar="CONFIG", help="time the whole training loop of this config instead")
+    ap.add_argument("--workers", default="0,1", help="--loop: DataLoader worker counts to compare")
     args = ap.parse_args(argv)
+    if args.loop:
+        try:
+            counts = [int(w) for w in args.workers.split(",") if w.strip()]
+        except ValueError:
+            print(f"bench_train: --workers takes comma-separated integers, got {args.workers!r}", file=sys.stderr)
+            return 2
+        if not counts or min(counts) < 0 or args.steps < 1:
+            print("bench_train: need worker counts >= 0 and --steps >= 1", file=sys.stderr)
+            return 2
+        import torch
+        print(f"machine: {platform.machine()}, {torch.get_num_threads()} torch threads, torch {torch.__version__}")
+        rows = [measure_loop(args.loop, w, args.steps) for w in counts]
+        for r in rows:
+            print(json.dumps(r), flush=True)
+        print("| workers | steps/s | s/step |\n|---|---|---|")
+        for r in rows:
+            print(f"| {r['workers']} | {r['steps_per_s']} | {r['s_per_step']} |")
+        return 0
     try:
         points = [int(p) for p in args.points.split(",") if p.strip()]
     except ValueError:
