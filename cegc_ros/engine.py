@@ -167,6 +167,11 @@ class Registrar:
         self.preprocess = copy.deepcopy(preprocess) if preprocess else PreprocessConfig()
         self.engine = copy.deepcopy(engine) if engine else EngineConfig()
         self._lock = threading.Lock()
+        # engine.compile: compiled graphs for clouds of the start-up num_points (a new size would
+        # recompile for ~45 s in the middle of a stream, so other sizes run eagerly).
+        self._compiled: dict[int, Any] = {}
+        self._compile_points = self.preprocess.num_points
+        self.compiled_runs = 0                # forward passes that used a compiled graph
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
@@ -196,9 +201,48 @@ class Registrar:
             if preprocess is not None:
                 self.preprocess = copy.deepcopy(preprocess)
             if engine is not None:
-                keep = (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device)
+                keep = (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device,
+                        self.engine.compile)
                 self.engine = copy.deepcopy(engine)
-                self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device = keep
+                (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device,
+                 self.engine.compile) = keep
+
+    def warm_up(self) -> float:
+        """With ``engine.compile``, compile every network now (seconds spent; 0 without it), so
+        that the first real pair does not pay for it."""
+        import torch
+        if not self.engine.compile:
+            return 0.0
+        t0 = time.perf_counter()
+        with self._lock:
+            for model in (self.model, self.second_model):
+                if model is None:
+                    continue
+                n = self._compile_points
+                g = torch.Generator().manual_seed(0)
+                pts = [torch.rand(1, n, 3, generator=g, device="cpu").to(self.device) for _ in range(2)]
+                nrm = [torch.nn.functional.normalize(torch.randn(1, n, 3, generator=g), dim=-1).to(self.device)
+                       for _ in range(2)]
+                desc = [torch.rand(1, n, model.cfg.desc_dim, generator=g).to(self.device) for _ in range(2)]
+                try:
+                    with torch.inference_mode():
+                        self._network(model, n, n)(pts[0], pts[1], nrm[0], nrm[1], desc[0], desc[1])
+                except Exception as err:   # e.g. no C++ compiler for inductor: stay usable
+                    self.engine.compile = False
+                    self._compiled.clear()
+                    raise RuntimeError(f"engine.compile failed, the networks run eagerly: {err}") from err
+        return time.perf_counter() - t0
+
+    def _network(self, model: Any, n_source: int, n_target: int) -> Any:
+        """The compiled graph of ``model`` for start-up-sized clouds under engine.compile, else the model."""
+        if not self.engine.compile or not n_source == n_target == self._compile_points:
+            return model
+        key = id(model)
+        if key not in self._compiled:
+            import torch
+            self._compiled[key] = torch.compile(model, dynamic=False)
+        self.compiled_runs += 1
+        return self._compiled[key]
 
     def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
         """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
@@ -257,9 +301,10 @@ class Registrar:
         def tens(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).unsqueeze(0).to(self.device)
 
+        net = self._network(model, len(ps.points), len(pt.points))
         with torch.inference_mode():
-            out = model(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
-                        tens(ps.desc), tens(pt.desc))
+            out = net(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
+                      tens(ps.desc), tens(pt.desc))
         t2 = time.perf_counter()
         timings[prefix + "network"] = t2 - t1
 

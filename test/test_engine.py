@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -250,3 +251,44 @@ def test_an_invalid_second_answer_does_not_replace_a_valid_first_one(monkeypatch
     monkeypatch.setattr(Registrar, "_solve", second_fails)
     res = reg.register(noisy.source, noisy.target)
     assert res.valid and res.network == "first" and "second_network" in res.timings
+
+
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+                    reason="torch.compile's CPU backend needs a C++ compiler")
+def test_compiled_networks_give_the_eager_answer_and_other_sizes_run_eagerly(tiny_checkpoint):
+    pre = PreprocessConfig(num_points=128)
+    eager = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre,
+                                      engine=EngineConfig(second_checkpoint="none", refine="none"))
+    comp = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre,
+                                     engine=EngineConfig(second_checkpoint="none", refine="none", compile=True))
+    assert eager.warm_up() == 0.0 and eager.compiled_runs == 0
+    assert comp.warm_up() > 0.0 and comp.compiled_runs == 1
+    src = scene(1000, seed=4)
+    tgt = src @ euler_z(15).T + [0.1, 0.2, 0.0]
+    a, b = eager.register(src, tgt), comp.register(src, tgt)
+    assert comp.compiled_runs == 2
+    np.testing.assert_allclose(b.weights, a.weights, atol=1e-4)
+    np.testing.assert_allclose(b.T_target_source, a.T_target_source, atol=1e-4)
+    # a runtime change of num_points would need a new graph: that size runs eagerly
+    comp.update(preprocess=PreprocessConfig(num_points=96), engine=EngineConfig(second_checkpoint="none"))
+    assert comp.engine.compile and comp.register(src, tgt).source_points.shape == (96, 3)
+    assert comp.compiled_runs == 2
+
+
+def test_a_failed_compile_leaves_the_engine_running_eagerly(tiny_checkpoint, monkeypatch):
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=128),
+                                    engine=EngineConfig(second_checkpoint="none", compile=True))
+
+    def broken(model, **kwargs):
+        def run(*args):
+            raise RuntimeError("no working C++ compiler")
+        return run
+    monkeypatch.setattr(torch, "compile", broken)
+    with pytest.raises(RuntimeError, match="engine.compile failed.*no working C"):
+        reg.warm_up()
+    assert not reg.engine.compile
+    eager = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=PreprocessConfig(num_points=128),
+                                      engine=EngineConfig(second_checkpoint="none"))
+    src = scene(1000, seed=4)
+    tgt = src @ euler_z(15).T
+    np.testing.assert_allclose(reg.register(src, tgt).T_target_source, eager.register(src, tgt).T_target_source)

@@ -1,6 +1,13 @@
 """Benchmark: CEGC forward latency and peak memory per point count, and the engine's stages.
 
     python -m cegc_ros.tools.bench_model [--points 512,717,1024,2048] [--repeats 7] [--threads 0]
+    python -m cegc_ros.tools.bench_model --compile
+
+``--compile`` compares the whole engine (node defaults, both networks) with and without
+``engine.compile``: start-up compile time with an empty inductor cache (a fresh temporary
+``TORCHINDUCTOR_CACHE_DIR``, so the cold cost a user pays once per machine) and the median
+``Registrar.register`` time on 10 synthetic 7Scenes test pairs (first network answers) and on 5
+noisy resampled ones (both networks run), each setting in its own subprocess.
 
 Each point count runs in a fresh subprocess so that its peak RSS (ru_maxrss) is its own.
 Reports the median forward time of the shipped network (batch 1, fp32, torch.inference_mode),
@@ -72,13 +79,59 @@ def _one(points: int, repeats: int, threads: int) -> dict:
             **{k: round(1e3 * v, 1) for k, v in st.items()}}
 
 
+def _engine(compile_: bool) -> dict:
+    import numpy as np
+
+    from cegc_ros.config import EngineConfig
+    from cegc_ros.data.protocols import make_pair, sample_7scenes_pair
+    from cegc_ros.engine import Registrar
+
+    pairs = [make_pair("7scenes", "test", i) for i in range(10)]
+    rng = np.random.default_rng(3)
+    noisy = [sample_7scenes_pair(p.source, rng, noise_sigma=0.01, resample_target=True) for p in pairs[:5]]
+    reg = Registrar.from_checkpoint(engine=EngineConfig(compile=compile_))
+    row: dict = {"compile": compile_, "start_up_compile_s": round(reg.warm_up(), 1)}
+    for name, ps in (("shared_point_ms", pairs), ("cascade_ms", noisy)):
+        row[name] = round(1e3 * float(np.median([reg.register(p.source, p.target).timings["total"] for p in ps])))
+    return row
+
+
+def _compare_compile() -> int:
+    import os
+    import tempfile
+    rows = []
+    for flag in ("0", "1"):
+        with tempfile.TemporaryDirectory() as cache:
+            out = subprocess.run([sys.executable, "-m", "cegc_ros.tools.bench_model", "--child-engine", flag],
+                                 capture_output=True, text=True, check=False,
+                                 env={**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache})
+        if out.returncode != 0:
+            print(f"bench_model: engine.compile={flag} failed: {out.stderr.strip().splitlines()[-1:]}",
+                  file=sys.stderr)
+            return 1
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(json.dumps(rows[-1]), flush=True)
+    print("| engine.compile | start-up compile s | median ms, first network answers | median ms, both networks |")
+    print("|---|---|---|---|")
+    for r in rows:
+        print(f"| {str(r['compile']).lower()} | {r['start_up_compile_s']} | {r['shared_point_ms']} | {r['cascade_ms']} |")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench_model", description=__doc__.splitlines()[0])
     ap.add_argument("--points", default="512,717,1024,2048")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    ap.add_argument("--compile", action="store_true", help="the engine with and without engine.compile")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--child-engine", choices=("0", "1"), default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.child_engine is not None:
+        print(json.dumps(_engine(args.child_engine == "1")))
+        return 0
+    if args.compile:
+        return _compare_compile()
     if args.child is not None:
         print(json.dumps(_one(args.child, args.repeats, args.threads)))
         return 0
