@@ -404,7 +404,7 @@ def _make_node_class():
             cloud = rng.uniform(-1.0, 1.0, (512, 3)).astype(np.float32)  # (512, 3)
             t0 = time.perf_counter()
             try:
-                compiled = self.registrar.warm_up() if hasattr(self.registrar, "warm_up") else 0.0
+                compiled = self.registrar.warm_up()
                 if compiled:
                     self.get_logger().info(f"engine.compile: networks compiled in {compiled:.1f} s")
                 self.registrar.register(cloud, cloud[::-1].copy())

@@ -71,6 +71,9 @@ class FakeRegistrar:
         self.preprocess, self.engine = preprocess or self.preprocess, engine or self.engine
         self.updates += 1
 
+    def warm_up(self) -> float:
+        return 0.0                                   # nothing to compile
+
     def register(self, src: np.ndarray, tgt: np.ndarray) -> FakeResult:
         assert src.dtype == np.float32 and src.shape[1] == 3
         self.calls.append((len(src), len(tgt)))

@@ -73,6 +73,18 @@ def measure_loop(config: str, workers: int, steps: int) -> dict:
             "s_per_step": round(wall / steps, 3)}
 
 
+def _ints(flag: str, text: str, minimum: int) -> list[int] | None:
+    """Comma-separated integers >= minimum, or None after a one-line error on stderr."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < minimum:
+        print(f"bench_train: {flag} takes comma-separated integers >= {minimum}, got {text!r}", file=sys.stderr)
+        return None
+    return values
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench_train", description=__doc__.splitlines()[0])
     ap.add_argument("--points", default="256,384")
@@ -81,14 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loop", metavar="CONFIG", help="time the whole training loop of this config instead")
     ap.add_argument("--workers", default="0,1", help="--loop: DataLoader worker counts to compare")
     args = ap.parse_args(argv)
+    if args.steps < 1:
+        print(f"bench_train: --steps must be >= 1, got {args.steps}", file=sys.stderr)
+        return 2
     if args.loop:
-        try:
-            counts = [int(w) for w in args.workers.split(",") if w.strip()]
-        except ValueError:
-            print(f"bench_train: --workers takes comma-separated integers, got {args.workers!r}", file=sys.stderr)
-            return 2
-        if not counts or min(counts) < 0 or args.steps < 1:
-            print("bench_train: need worker counts >= 0 and --steps >= 1", file=sys.stderr)
+        counts = _ints("--workers", args.workers, 0)
+        if counts is None:
             return 2
         import torch
         print(f"machine: {platform.machine()}, {torch.get_num_threads()} torch threads, torch {torch.__version__}")
@@ -99,13 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             print(f"| {r['workers']} | {r['steps_per_s']} | {r['s_per_step']} |")
         return 0
-    try:
-        points = [int(p) for p in args.points.split(",") if p.strip()]
-    except ValueError:
-        print(f"bench_train: --points takes comma-separated integers, got {args.points!r}", file=sys.stderr)
-        return 2
-    if not points or min(points) < 16 or args.steps < 1:
-        print("bench_train: need point counts >= 16 and --steps >= 1", file=sys.stderr)
+    points = _ints("--points", args.points, 16)
+    if points is None:
         return 2
     import torch
 
