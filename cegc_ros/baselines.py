@@ -1,4 +1,5 @@
-"""Open3D peers of the engine: ICP from identity, FGR on FPFH, RANSAC on FPFH.
+"""Open3D peers of the engine: ICP from identity, FGR on FPFH, RANSAC on FPFH (and RANSAC
+refined by the engine's own point-to-plane ICP, ``ransac+icp``: the fair peer of ``cegc+icp``).
 
 Same style as :class:`cegc_ros.engine.Registrar`: numpy clouds in (metres, own frames),
 a small result out whose ``T_target_source`` maps source points into the target frame
@@ -33,7 +34,7 @@ import numpy as np
 
 from .geometry import finite_cloud
 
-METHODS = ("icp", "fgr", "ransac")
+METHODS = ("icp", "fgr", "ransac", "ransac+icp")
 
 
 class BaselineError(RuntimeError):
@@ -219,8 +220,34 @@ def register_ransac(source_xyz: np.ndarray, target_xyz: np.ndarray,
     return _finish(o3d, prep, res.transformation, "ransac", config, t0, t_feat)
 
 
+def register_ransac_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                        config: BaselineConfig | None = None) -> BaselineResult:
+    """RANSAC on FPFH, then the ICP that ``cegc+icp`` uses (the engine's defaults: point-to-plane
+    on the input clouds, ``engine.icp_max_distance`` of twice the larger RMS radius)."""
+    from .config import EngineConfig
+    from .engine import Registrar, _fitness
+    from .geometry import normalise_pair, voxel_downsample
+
+    first = register_ransac(source_xyz, target_xyz, config)
+    if not first.valid:
+        return BaselineResult(first.T_target_source, False, first.reason, first.fitness, "ransac+icp",
+                              first.voxel_size, dict(first.timings))
+    t0 = time.perf_counter()
+    src = finite_cloud("source cloud", source_xyz, 3)
+    tgt = finite_cloud("target cloud", target_xyz, 3)
+    _, _, norm = normalise_pair(src, tgt)
+    T = Registrar._icp(src, tgt, first.T_target_source, norm, EngineConfig())
+    timings = dict(first.timings)
+    timings["refine"] = time.perf_counter() - t0
+    timings["total"] = timings.get("total", 0.0) + timings["refine"]
+    v = first.voxel_size
+    fitness = _fitness(voxel_downsample(src, v).astype(np.float64), voxel_downsample(tgt, v).astype(np.float64),
+                       T, (config or BaselineConfig()).fitness_factor * v)
+    return BaselineResult(T, True, "", fitness, "ransac+icp", v, timings)
+
+
 _REGISTRY: dict[str, Callable[..., BaselineResult]] = {
-    "icp": register_icp, "fgr": register_fgr, "ransac": register_ransac}
+    "icp": register_icp, "fgr": register_fgr, "ransac": register_ransac, "ransac+icp": register_ransac_icp}
 
 
 def register(method: str, source_xyz: np.ndarray, target_xyz: np.ndarray,
@@ -250,5 +277,6 @@ def describe(config: BaselineConfig | None = None) -> list[str]:
         f"samples; edge-length {c.ransac_edge_length:g} + distance checkers; "
         f"{c.ransac_max_iterations} iterations / {c.ransac_confidence:g} confidence; mutual filter "
         f"{'on' if c.ransac_mutual_filter else 'off'}; seed {c.seed}",
+        "ransac+icp: the RANSAC above, then the engine's point-to-plane ICP (EngineConfig defaults)",
         f"all: {c.threads} Open3D threads; fitness within {c.fitness_factor:g}v",
     ]

@@ -353,6 +353,7 @@ def _make_node_class():
             self._engine_time: deque[float] = deque(maxlen=win)  # Registrar.register (s)
             self._last_fitness = float("nan")
             self._last_network = "none"
+            self._last_pose_from = "none"
             self._last_frames: dict[str, str] = {}
             self._engine_dirty = False
 
@@ -579,6 +580,7 @@ def _make_node_class():
                 raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
             self._last_fitness = float(result.fitness)
             self._last_network = result.network
+            self._last_pose_from = result.pose_from
             if result.fitness < out.min_fitness:
                 raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
                                f"output.min_fitness {out.min_fitness:.3f}")
@@ -645,6 +647,7 @@ def _make_node_class():
             values["checkpoint"] = str(getattr(self.registrar, "checkpoint_path", "?"))
             values["last_fitness"] = f"{self._last_fitness:.4f}"
             values["last_network"] = self._last_network       # cascade: "first" | "second"
+            values["last_pose_from"] = self._last_pose_from   # "network" | "ransac" (engine.ransac_candidate)
             values["busy"] = str(self._busy).lower()
             return values
 

@@ -292,3 +292,55 @@ def test_a_failed_compile_leaves_the_engine_running_eagerly(tiny_checkpoint, mon
     src = scene(1000, seed=4)
     tgt = src @ euler_z(15).T
     np.testing.assert_allclose(reg.register(src, tgt).T_target_source, eager.register(src, tgt).T_target_source)
+
+
+def _moved_resamples(seed: int = 3):
+    """Two independent draws of one room corner (no shared points), the source moved: (src, tgt, T)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = euler_z(35.0), [0.4, -0.3, 0.1]
+    src_world = scene(4000, seed=seed)
+    src = (src_world - T[:3, 3]) @ T[:3, :3]                    # source frame: p_t = R p_s + t
+    return src.astype(np.float32), scene(4000, seed=seed + 1), T
+
+
+def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    cos = (np.trace(T_est[:3, :3].T @ T_true[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+def test_ransac_candidate_replaces_a_wrong_network_answer(tiny_checkpoint):
+    """An untrained pair of networks is wrong on independent scans; RANSAC on FPFH is not, and wins."""
+    src, tgt, T = _moved_resamples()
+    pre = PreprocessConfig(num_points=256)
+    eng = EngineConfig(second_checkpoint=str(tiny_checkpoint))
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre, engine=eng)
+    res = reg.register(src, tgt)
+    assert res.network == "second" and res.pose_from == "ransac" and res.valid and "ransac" in res.timings
+    rot, trans = _errors(res.T_target_source, T)
+    assert rot < 2.0 and trans < 0.05
+    assert res.fitness > 0.5 and np.isfinite(res.covariance).all() and np.diag(res.covariance).max() < 1e-2
+    # Off: the network's (wrong) answer is returned.
+    reg.update(engine=EngineConfig(second_checkpoint=str(tiny_checkpoint), ransac_candidate=False))
+    off = reg.register(src, tgt)
+    assert off.pose_from == "network" and "ransac" not in off.timings
+    assert _errors(off.T_target_source, T)[0] > 10.0
+
+
+def test_ransac_candidate_does_not_replace_a_right_network_answer(monkeypatch):
+    """The shipped networks solve a noisy pair; a RANSAC answer 20 deg off must not replace it."""
+    from cegc_ros import baselines
+    reg = Registrar.from_checkpoint(None, device="cpu", preprocess=PreprocessConfig(num_points=512))
+    noisy = _room_pair(0.01)
+    real = baselines.register_ransac
+
+    def off_by_20_deg(src, tgt, config=None):
+        res = real(src, tgt, config)
+        T = np.eye(4)
+        T[:3, :3] = euler_z(20.0)
+        res.T_target_source = T @ noisy.T_target_source
+        return res
+
+    monkeypatch.setattr(baselines, "register_ransac", off_by_20_deg)
+    res = reg.register(noisy.source, noisy.target)
+    assert res.network == "second" and res.pose_from == "network" and "ransac" in res.timings
+    assert _errors(res.T_target_source, noisy.T_target_source)[0] < 5.0

@@ -144,9 +144,12 @@ def test_real_dir_pairs_and_7scenes_protocol(tmp_path):
     pairs = E.real_pairs(tmp_path)
     assert [p.pair_id for p in pairs] == ["p0"]
     np.testing.assert_allclose(pairs[0].T_gt, T)
-    ev = E.evaluate(pairs, ["ransac"], thresholds=E.metrics.REAL_FRAGMENT_RECALL, progress=False)
-    assert ev.summaries["ransac"]["recall"] == 1.0
+    ev = E.evaluate(pairs, ["ransac", "ransac+icp"], thresholds=E.metrics.REAL_FRAGMENT_RECALL,
+                    progress=False)
+    assert ev.summaries["ransac"]["recall"] == ev.summaries["ransac+icp"]["recall"] == 1.0
     assert ev.summaries["ransac"]["error_r"] < 2.0
+    # The engine's ICP after RANSAC lands on the exact pose (the two clouds share every point).
+    assert ev.summaries["ransac+icp"]["error_r"] < 0.05 < ev.summaries["ransac"]["error_r"]
 
     proxy = E.real_7scenes_pairs(tmp_path, num_pairs=3, num_points=256, seed=1)
     again = E.real_7scenes_pairs(tmp_path, num_pairs=3, num_points=256, seed=1)
@@ -300,3 +303,24 @@ def test_ablation_table_covers_the_chosen_sets(tmp_path, tiny_checkpoint, capsys
     assert out[-1].startswith("| tiny | robust |")
     assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--sets", "real,bogus"]) == 2
     assert "unknown set(s) bogus" in capsys.readouterr().err
+
+
+def test_net_icp_is_cegc_icp_without_the_ransac_candidate(tmp_path, tiny_checkpoint, small_params):
+    """On independent scans an untrained network is wrong: cegc+icp (node defaults) returns the
+    RANSAC candidate's right pose, net+icp shows what the networks alone answer."""
+    import yaml
+
+    T = _fake_real_dir(tmp_path)
+    pair = E.real_pairs(tmp_path)[0]
+    rng = np.random.default_rng(0)
+    source = pair.source + rng.normal(0, 0.003, pair.source.shape)   # no exact shared points
+    doc = yaml.safe_load(small_params.read_text())
+    next(iter(doc.values()))["ros__parameters"]["engine.second_checkpoint"] = str(tiny_checkpoint)
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(doc))
+    runners = E.make_runners(["cegc+icp", "net+icp"], checkpoint=str(tiny_checkpoint), params_file=params)
+    errors = {}
+    for m, run in runners.items():
+        T_est, valid, _, _ = run(source, pair.target)
+        errors[m] = E.metrics.rotation_error_deg(T[:3, :3], np.asarray(T_est)[:3, :3])
+    assert errors["cegc+icp"] < 1.0 and errors["net+icp"] > 10.0

@@ -51,6 +51,7 @@ class FakeResult:
     refined: str = "none"
     timings: dict = field(default_factory=dict)
     network: str = "second"
+    pose_from: str = "ransac"
 
 
 class FakeRegistrar:
@@ -282,11 +283,13 @@ def test_bad_inputs_are_counted_by_reason_and_the_node_keeps_going(ros):
                    "missing_frame": 1, "invalid_result": 1}
     assert int(after["pairs_rejected"]) - int(before["pairs_rejected"]) == 7
     assert int(after["pairs_out"]) == int(before["pairs_out"])
-    # ...and a good pair still gets its pose; diagnostics say which network of the cascade answered.
+    # ...and a good pair still gets its pose; diagnostics say which network of the cascade answered
+    # and which candidate gave the pose.
     t += SEC
     probe.send(rh.cloud(good, "a", t), rh.cloud(good, "b", t))
     assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 5.0)
     assert rh.wait_for(lambda: node.diagnostics_values()["last_network"] == "second", 5.0)
+    assert node.diagnostics_values()["last_pose_from"] == "ransac"
     # The diagnostics topic carries the same counters.
     assert rh.wait_for(lambda: probe.diagnostics().get("rejected.malformed_cloud")
                        == after["rejected.malformed_cloud"], 3.0)

@@ -10,8 +10,10 @@ Pairs come from one of three sources:
   7scenes``): same-fragment crops built by :func:`cegc_ros.data.protocols.sample_7scenes_pair`,
   seeded, scored at 5 deg: the real-data proxy of the paper's 7Scenes benchmark.
 
-Methods: ``cegc`` (engine, refine none), ``cegc+icp`` (engine, refine icp), ``icp``, ``fgr``,
-``ransac`` (:mod:`cegc_ros.baselines`). With ``--through-node`` the CEGC methods run inside a
+Methods: ``cegc`` (engine, refine none), ``cegc+icp`` (engine, refine icp: the node's defaults),
+``net+icp`` (as cegc+icp with ``engine.ransac_candidate`` off: what the networks alone do),
+``icp``, ``fgr``, ``ransac``, ``ransac+icp`` (RANSAC then the engine's ICP;
+:mod:`cegc_ros.baselines`). With ``--through-node`` the CEGC methods run inside a
 ``register_node`` subprocess fed by replaying the bag over DDS; the baselines run offline on the
 same pairs. Outputs in ``--out DIR``: ``metrics.json``, ``pairs.csv``, ``report.md``,
 ``errors.png``. A method that raises or returns an invalid result on a pair scores a recall
@@ -35,9 +37,11 @@ import numpy as np
 
 from cegc_ros import metrics
 
-ALL_METHODS = ("cegc", "cegc+icp", "icp", "fgr", "ransac")
-CEGC_METHODS = ("cegc", "cegc+icp")
-BASELINE_METHODS = ("icp", "fgr", "ransac")
+ALL_METHODS = ("cegc", "cegc+icp", "net+icp", "icp", "fgr", "ransac", "ransac+icp")
+CEGC_METHODS = ("cegc", "cegc+icp", "net+icp")
+BASELINE_METHODS = ("icp", "fgr", "ransac", "ransac+icp")
+# engine settings of each CEGC method over the parameter file's: (engine.refine, engine.ransac_candidate)
+CEGC_SETTINGS = {"cegc": ("none", None), "cegc+icp": ("icp", None), "net+icp": ("icp", False)}
 
 # Table columns: (key in the summary, header, lower is better)
 COLUMNS = (
@@ -318,10 +322,12 @@ def make_runners(methods: Sequence[str], checkpoint: str | None = None,
                                               device=eng.device, preprocess=pre, engine=eng)
         base_engine = registrar.engine
 
-        def cegc_runner(refine: str) -> Runner:
+        def cegc_runner(method: str) -> Runner:
             import copy
             eng = copy.deepcopy(base_engine)
-            eng.refine = refine
+            eng.refine, candidate = CEGC_SETTINGS[method]
+            if candidate is not None:
+                eng.ransac_candidate = candidate
 
             def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, bool, str, float]:
                 registrar.update(engine=eng)
@@ -329,10 +335,9 @@ def make_runners(methods: Sequence[str], checkpoint: str | None = None,
                 return r.T_target_source, r.valid, r.reason, r.fitness
             return run
 
-        if "cegc" in methods:
-            runners["cegc"] = cegc_runner("none")
-        if "cegc+icp" in methods:
-            runners["cegc+icp"] = cegc_runner("icp")
+        for m in methods:
+            if m in CEGC_METHODS:
+                runners[m] = cegc_runner(m)
     if any(m in BASELINE_METHODS for m in methods):
         from cegc_ros import baselines
 
@@ -408,7 +413,7 @@ def run_through_node(bag: str | Path, pairs: Sequence[EvalPair], methods: Sequen
                      ) -> dict[str, list[Outcome]]:
     """CEGC outcomes from a ``register_node`` subprocess fed by replaying ``bag`` over DDS.
 
-    One node per method (``engine.refine`` none / icp), started with ``params_file`` plus
+    One node per method (its :data:`CEGC_SETTINGS`), started with ``params_file`` plus
     ``input.reliable:=true`` (replay QoS), replayed in lockstep so no pair is dropped. A pair
     the node answered with no pose (rejected, invalid) is a failure scored with identity.
     Latency is the node's answer time: publishing the pair's later cloud to receiving its pose.
@@ -433,9 +438,11 @@ def run_through_node(bag: str | Path, pairs: Sequence[EvalPair], methods: Sequen
     for method in methods:
         if method not in CEGC_METHODS:
             raise EvalError(f"{method} does not run in register_node")
-        refine = "icp" if method == "cegc+icp" else "none"
+        refine, candidate = CEGC_SETTINGS[method]
         cmd = [sys.executable, "-m", "cegc_ros.node", "--ros-args", "--params-file", str(params),
                "-p", "input.reliable:=true", "-p", f"engine.refine:={refine}"]
+        if candidate is not None:
+            cmd += ["-p", f"engine.ransac_candidate:={str(candidate).lower()}"]
         if checkpoint:
             cmd += ["-p", f"engine.checkpoint:={Path(checkpoint).resolve()}"]
         log_path = logs / f"register_node_{method.replace('+', '_')}.log"
