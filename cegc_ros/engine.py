@@ -375,7 +375,9 @@ class Registrar:
         the real ones (2/3 against 3/3), so the real pairs decided this; a 5% margin for the
         network chose worse on the validation pairs (0.56 against 0.575); counting the
         network's and FPFH's matches that a pose explains chose no better than the shares
-        (measured on the synthetic fragment test bag and the real pairs).
+        (measured on the synthetic fragment test bag and the real pairs). Checked afterwards on
+        60 pairs of fresh rooms (fragments, train split, seed 2): two-way 0.533 (= always
+        picking the right candidate), one-way 0.517, RANSAC+ICP alone 0.500, networks 0.400.
         """
         from . import baselines
         t0 = time.perf_counter()
