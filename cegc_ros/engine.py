@@ -27,6 +27,7 @@ import numpy as np
 
 from .config import EngineConfig, PreprocessConfig
 from .geometry import LEGACY_FEATURES, Normalisation, finite_cloud, normalise_pair, prepare_cloud, voxel_downsample
+from .metrics import rotation_error_deg, translation_error
 from .solver import robust_pose
 
 CHECKPOINT_FORMAT = 1
@@ -430,9 +431,8 @@ def _median_spacing(points: np.ndarray) -> float:
 
 def _agree(A: np.ndarray, B: np.ndarray, max_translation: float, max_rotation_deg: float = 5.0) -> bool:
     """Whether two 4x4 poses are within max_rotation_deg and max_translation of each other."""
-    cos = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
-    return bool(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) < max_rotation_deg
-                and np.linalg.norm(A[:3, 3] - B[:3, 3]) < max_translation)
+    return bool(rotation_error_deg(A[:3, :3], B[:3, :3]) < max_rotation_deg
+                and translation_error(A[:3, 3], B[:3, 3]) < max_translation)
 
 
 def _nearest_neighbour_covariance(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> np.ndarray:

@@ -13,6 +13,7 @@ from cegc_ros.config import EngineConfig, PreprocessConfig
 from cegc_ros.engine import (DEFAULT_WEIGHTS, CheckpointError, Registrar, covariance_from_correspondences,
                              load_checkpoint, save_checkpoint)
 from cegc_ros.geometry import normalise_pair
+from cegc_ros.metrics import rotation_error_deg, translation_error
 from cegc_ros.model import CEGC, ModelConfig
 
 
@@ -304,8 +305,9 @@ def _moved_resamples(seed: int = 3):
 
 
 def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    cos = (np.trace(T_est[:3, :3].T @ T_true[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    """(rotation error in degrees, translation error) of a 4x4 estimate."""
+    return (float(rotation_error_deg(T_true[:3, :3], T_est[:3, :3])),
+            float(translation_error(T_true[:3, 3], T_est[:3, 3])))
 
 
 def test_ransac_candidate_replaces_a_wrong_network_answer(tiny_checkpoint):
