@@ -632,20 +632,20 @@ class FragmentConfig:
     noise: NoiseModel = NoiseModel()
 
 
-def make_fragment(scene_seed: int, index: int,
-                  config: FragmentConfig = FragmentConfig()) -> Fragment:
-    """Render and fuse fragment ``index`` (0 .. MAX_FRAGMENTS - 1) of a scene."""
-    if not 0 <= index < MAX_FRAGMENTS:
-        raise ValueError(f"fragment index {index} outside 0..{MAX_FRAGMENTS - 1}")
-    room = get_room(int(scene_seed))
-    F = config.frames_per_fragment
-    poses = _scene_trajectory(int(scene_seed), F)[index * F:(index + 1) * F]
-    T_frag_world = np.linalg.inv(poses[0])
-    rng = np.random.default_rng([int(scene_seed), int(index), 0xF4A])
+def fuse_depth_frames(room: Room, poses: np.ndarray, rng: np.random.Generator | None,
+                      config: FragmentConfig) -> np.ndarray:
+    """Render a depth frame at each pose and fuse them into one voxelized cloud.
+
+    poses: (K, 4, 4) float64 T_world_camera of the frames to render (already subsampled: every
+    pose is rendered). Returns (N, 3) float32 points in the camera frame of ``poses[0]``, kept
+    inside the config's TSDF-like volume, averaged per ``config.voxel_size`` voxel. Noise is
+    drawn from ``rng`` frame after frame (None: noiseless).
+    """
     cam = config.camera
+    T_frag_world = np.linalg.inv(poses[0])
     chunks = []
     lo = np.asarray(config.volume_origin, np.float32)
-    for T_world_cam in poses[::config.frame_step]:
+    for T_world_cam in poses:
         z, u, v = render_depth(room, T_world_cam, rng, cam, config.noise, config.pixel_stride)
         vv, uu = np.nonzero(np.isfinite(z))
         zz = z[vv, uu]
@@ -659,8 +659,19 @@ def make_fragment(scene_seed: int, index: int,
             rel = p - lo
             p = p[np.all((rel >= 0) & (rel <= config.volume_size), axis=1)]
         chunks.append(p)
-    pts = np.concatenate(chunks)
-    pts = voxel_downsample(pts, config.voxel_size)
+    return voxel_downsample(np.concatenate(chunks), config.voxel_size)
+
+
+def make_fragment(scene_seed: int, index: int,
+                  config: FragmentConfig = FragmentConfig()) -> Fragment:
+    """Render and fuse fragment ``index`` (0 .. MAX_FRAGMENTS - 1) of a scene."""
+    if not 0 <= index < MAX_FRAGMENTS:
+        raise ValueError(f"fragment index {index} outside 0..{MAX_FRAGMENTS - 1}")
+    room = get_room(int(scene_seed))
+    F = config.frames_per_fragment
+    poses = _scene_trajectory(int(scene_seed), F)[index * F:(index + 1) * F]
+    rng = np.random.default_rng([int(scene_seed), int(index), 0xF4A])
+    pts = fuse_depth_frames(room, poses[::config.frame_step], rng, config)
     info = {"scene_seed": int(scene_seed), "fragment": int(index),
             "frames": [index * F, (index + 1) * F], "room_size": list(room.size),
             "voxel_size": config.voxel_size}
