@@ -22,75 +22,79 @@ def _meta(description: str, lo: float | None = None, hi: float | None = None,
 
 @dataclass
 class PreprocessConfig:
-    """How raw clouds (metres) become the network's input."""
+    """How raw clouds (metres) become bounded clouds and the network's input (cegc_ros/bounding.py)."""
 
     voxel_size: float = field(default=0.0, metadata=_meta(
-        "Voxel-grid size in metres applied to each input cloud before subsampling; 0 disables it.",
-        0.0, 10.0))
+        "Voxel-grid size in metres applied to both input clouds; 0 derives it from the clouds: "
+        "voxel_ratio x the larger bounding-box side.", 0.0, 10.0))
+    voxel_ratio: float = field(default=0.01, metadata=_meta(
+        "Adaptive voxel grid (when voxel_size is 0), as a fraction of the larger of the two "
+        "clouds' largest bounding-box sides; 0 with voxel_size 0 switches the grid off.", 0.0, 0.2))
+    max_points: int = field(default=20000, metadata=_meta(
+        "Most points per cloud after the voxel grid: a cloud above it is re-gridded coarser, "
+        "then subsampled. Bounds the time and memory of every later stage (ICP, fitness).",
+        100, 1_000_000))
+    support_points: int = field(default=2048, metadata=_meta(
+        "Points per cloud on which normals and FPFH are computed (seeded subsample of the "
+        "bounded cloud); the network's points are drawn from them.", 64, 20000))
     num_points: int = field(default=1024, metadata=_meta(
-        "Points per cloud fed to the network after voxelization (seeded random subsample).",
+        "Points per cloud fed to the network (seeded subsample of the support points).",
         64, 8192))
     seed: int = field(default=0, metadata=_meta(
-        "Seed of the deterministic subsample.", 0, 2**31 - 1))
+        "Seed of the deterministic subsamples.", 0, 2**31 - 1))
 
 
 @dataclass
 class EngineConfig:
-    """Which weights run where, and what follows the network."""
+    """Which weights run where, and the stages after the network (cegc_ros/engine.py)."""
 
     checkpoint: str = field(default="", metadata=_meta(
         "Path of a CEGC checkpoint (.pt); empty uses the weights shipped with the package.",
         dynamic=False))
-    second_checkpoint: str = field(default="", metadata=_meta(
-        "Second network of the cascade, for clouds that share no exact points (independent "
-        "scans, noise, resampling): empty uses the shipped cegc_7scenes_noise.pt, 'none' runs "
-        "the first network only. See cascade_min_coincident.", dynamic=False))
-    cascade_min_coincident: float = field(default=0.1, metadata=_meta(
-        "The first network's answer is kept when at least this share of the source lands within "
-        "1e-3 of the normalisation scale of a target point (clouds cut from one point set, as "
-        "in the 7Scenes protocol); otherwise the second network runs and its answer is used.",
-        0.0, 1.0))
-    # On by default because it won on the real pairs (README, "Accuracy"): real SUN3D fragment
-    # pairs 1/3 -> 3/3, resampled 7Scenes-protocol pairs 0.93 -> 1.00, noisy ones unchanged.
-    ransac_candidate: bool = field(default=True, metadata=_meta(
-        "When the second network answers (clouds that share no exact points: independent scans), "
-        "also run Open3D RANSAC on FPFH (refined like the network's answer) and return whichever "
-        "of the two answers puts more of both clouds on each other (RegistrationResult.pose_from). "
-        "Adds the RANSAC time (0.1-1 s) to those pairs only; see cegc_ros/engine.py."))
     device: str = field(default="auto", metadata=_meta(
         "Torch device: 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.", dynamic=False))
-    solver: str = field(default="robust", metadata=_meta(
-        "Pose from the network's correspondences: 'svd' (the paper's confidence-weighted SVD over "
-        "all argmax matches) or 'robust' (confidence-guided hypothesis testing, then weighted SVD "
-        "on the explained matches; see cegc_ros/solver.py).", choices=("svd", "robust")))
-    robust_inlier_factor: float = field(default=2.0, metadata=_meta(
-        "Inlier residual of the robust solver, in multiples of the target's median point spacing.",
-        0.5, 20.0))
-    robust_hypotheses: int = field(default=5000, metadata=_meta(
-        "Hypotheses per round of the robust solver.", 10, 100000))
-    robust_max_hypotheses: int = field(default=50000, metadata=_meta(
-        "Budget of the robust solver: rounds continue until the RANSAC stopping rule (99.9%) holds "
-        "for the best hypothesis so far or this many were drawn (one round when <= "
-        "robust_hypotheses). Easy pairs stop after one round.", 0, 1000000))
-    # ICP is the default because it won on the real pairs (README, "Accuracy"): 7Scenes protocol
-    # on real SUN3D fragments, with and without shared points.
+    candidates: str = field(default="both", metadata=_meta(
+        "Candidate partners scored by CAMS for each source point: 'learned' (nearest in the "
+        "network's feature space), 'fpfh' (nearest in FPFH space), 'both', or 'all' (the "
+        "paper: every pair of the top-N overlap sets, argmax per row). See cegc_ros/matching.py.",
+        choices=("learned", "fpfh", "both", "all")))
+    learned_candidates: int = field(default=3, metadata=_meta(
+        "Candidates per source point from the learned feature space.", 1, 64))
+    fpfh_candidates: int = field(default=2, metadata=_meta(
+        "Candidates per source point from FPFH space.", 1, 64))
+    confidence: str = field(default="learned", metadata=_meta(
+        "Correspondence weights for the estimator: 'learned' (HOCE overlap x CAMS/CFM pair "
+        "confidence) or 'uniform' (all 1: the ablation without the learned confidence).",
+        choices=("learned", "uniform")))
+    max_correspondences: int = field(default=1500, metadata=_meta(
+        "Most correspondences handed to the estimator (the most confident; its cost grows as "
+        "the square of this).", 10, 10000))
+    estimator: str = field(default="compatibility", metadata=_meta(
+        "Pose from the weighted correspondences: 'compatibility' (second-order spatial "
+        "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
+        "confidence-weighted SVD over all of them). See cegc_ros/estimator.py.",
+        choices=("compatibility", "svd")))
+    inlier_factor: float = field(default=2.0, metadata=_meta(
+        "Inlier and compatibility distance of the estimator, in multiples of the target "
+        "network points' median spacing.", 0.25, 20.0))
     refine: str = field(default="icp", metadata=_meta(
-        "Refinement after the network: 'none' or 'icp' (Open3D point-to-plane on the "
-        "voxelized clouds, started from the network's estimate).", choices=("none", "icp")))
+        "Refinement after the estimator: 'none' or 'icp' (Open3D point-to-plane on the bounded "
+        "clouds, at most icp_points each, started from the estimate).", choices=("none", "icp")))
     icp_max_distance: float = field(default=0.02, metadata=_meta(
         "ICP correspondence distance, as a fraction of the normalisation scale (twice the "
         "larger RMS radius of the two clouds).", 1e-4, 1.0))
     icp_max_iterations: int = field(default=30, metadata=_meta(
         "ICP iterations.", 1, 1000))
+    icp_points: int = field(default=5000, metadata=_meta(
+        "Most points per cloud that ICP uses (seeded subsample of the bounded clouds).",
+        100, 1_000_000))
     threads: int = field(default=0, metadata=_meta(
-        "Torch intra-op threads, and Open3D's for the RANSAC candidate; 0 keeps the libraries' "
-        "defaults.", 0, 256, dynamic=False))
+        "Torch intra-op threads; 0 keeps the library's default.", 0, 256, dynamic=False))
     compile: bool = field(default=False, metadata=_meta(
-        "torch.compile the networks at start-up for clouds of exactly preprocess.num_points "
+        "torch.compile the network at start-up for clouds of exactly preprocess.num_points "
         "points (the usual case); other sizes run eagerly. Costs about 40 s at start-up on a "
-        "2-core CPU (an empty compile cache; seconds with a warm one) and cuts the latency per "
-        "pair by about 20% (README, Performance). Needs a C++ compiler; without one the node "
-        "logs it and runs eagerly.", dynamic=False))
+        "2-core CPU (an empty compile cache; seconds with a warm one). Needs a C++ compiler; "
+        "without one the node logs it and runs eagerly.", dynamic=False))
 
 
 @dataclass
@@ -159,6 +163,53 @@ class DiagnosticsConfig:
     log_throttle: float = field(default=5.0, metadata=_meta(
         "Each kind of warning (rejected pair, unpaired cloud, ...) is logged at most once per "
         "this many seconds, with a count of the ones not logged.", 0.0, 3600.0))
+
+
+@dataclass
+class SequentialConfig:
+    """Sequential mode: one cloud stream registered against keyframes into odometry.
+
+    ``mode`` lives here (``sequential.mode``): it chooses between the two-topic pairing and
+    this keyframe odometry (cegc_ros/sequential/odometry.py; docs/sequential.md).
+    """
+
+    mode: str = field(default="pairs", metadata=_meta(
+        "'pairs': register source_cloud onto target_cloud, paired by stamp. 'sequential': "
+        "register each cloud of the one topic 'cloud' against the current keyframe and publish "
+        "odometry (~/odometry, ~/path, TF).", dynamic=False, choices=("pairs", "sequential")))
+    voxel_size: float = field(default=0.05, metadata=_meta(
+        "Voxel grid (metres) of the clouds that tracking ICP and the keyframe checks run on "
+        "(global registration gets the raw clouds and uses preprocess.*).", 1e-4, 10.0))
+    icp_max_distance: float = field(default=0.2, metadata=_meta(
+        "Correspondence distance (metres) of the tracking ICP: how far the constant-velocity "
+        "prediction may be off and still be pulled in.", 1e-4, 100.0))
+    icp_max_iterations: int = field(default=30, metadata=_meta(
+        "Iterations of the tracking ICP.", 1, 1000))
+    inlier_distance: float = field(default=0.05, metadata=_meta(
+        "Distance (metres) within which an aligned point counts as on the keyframe, for "
+        "fitness, overlap and the covariance.", 1e-5, 100.0))
+    min_fitness: float = field(default=0.5, metadata=_meta(
+        "A registration (ICP from the prediction, or the global one) is accepted when at least "
+        "this share of the cloud's voxels lies within inlier_distance of the keyframe; below it "
+        "ICP hands over to global registration, and a rejected global answer skips the cloud "
+        "(counted; the odometry is unchanged).", 0.0, 1.0))
+    keyframe_min_overlap: float = field(default=0.7, metadata=_meta(
+        "A new keyframe is taken when the fitness, or the overlap (share of the keyframe's "
+        "voxels within inlier_distance of the aligned cloud), falls below this.", 0.0, 1.0))
+    keyframe_max_translation: float = field(default=0.5, metadata=_meta(
+        "A new keyframe is taken when the cloud is farther than this (metres) from the "
+        "keyframe.", 0.0, 1000.0))
+    keyframe_max_rotation: float = field(default=20.0, metadata=_meta(
+        "A new keyframe is taken when the cloud is rotated more than this (degrees) from the "
+        "keyframe.", 0.0, 180.0))
+    path_length: int = field(default=1000, metadata=_meta(
+        "Poses kept in ~/path (the oldest are dropped).", 1, 1_000_000))
+    odom_frame: str = field(default="odom", metadata=_meta(
+        "frame_id of ~/odometry, ~/path and the parent of the TF (the first cloud's pose).",
+        dynamic=False))
+    publish_tf: bool = field(default=True, metadata=_meta(
+        "Publish odom_frame -> cloud frame on /tf (only where tf2_msgs is installed).",
+        dynamic=False))
 
 
 def section_items(obj: Any) -> list[tuple[str, Any, dict[str, Any]]]:

@@ -4,11 +4,19 @@
     result = registrar.register(source_xyz, target_xyz)
     result.T_target_source                              # (4, 4): p_target = T @ [p_source; 1]
 
-Pipeline: drop non-finite points -> voxel grid (``preprocess.voxel_size`` metres, 0 = off) ->
-normalise (see :mod:`cegc_ros.geometry`) -> normals + FPFH on a support subsample -> seeded
-subsample to ``preprocess.num_points`` -> CEGC -> de-normalise to metres -> optional ICP.
-Clouds that share no exact points go on to a second network and, with
-``engine.ransac_candidate``, to a check against Open3D RANSAC on FPFH (``Registrar._register``).
+One pass through six stages, each a module of its own, each with bounded work:
+
+    bound     cegc_ros/bounding.py   finite filter, adaptive voxel grid, cap (one linear pass)
+    features  cegc_ros/geometry.py   normalise, normals + FPFH on a support subsample, network points
+    match     cegc_ros/matching.py   CEGC: HOCE overlap, candidates, CAMS/CFM pair confidence
+    estimate  cegc_ros/estimator.py  confidence-seeded spatial compatibility (or the paper's SVD)
+    refine    cegc_ros/refine.py     point-to-plane ICP on capped clouds
+    verify    cegc_ros/refine.py     fitness and covariance
+
+Variants (ablations) are settings, not code paths: ``engine.candidates``, ``engine.confidence``,
+``engine.estimator``, ``engine.refine`` (cegc_ros/config.py). Nothing here runs a second
+network or races a classical method: the classical peers live in cegc_ros/baselines.py, which
+reuses these stages; the engine never imports it.
 """
 
 from __future__ import annotations
@@ -25,15 +33,12 @@ from typing import Any
 
 import numpy as np
 
+from . import bounding, estimator, matching, refine
 from .config import EngineConfig, PreprocessConfig
-from .geometry import LEGACY_FEATURES, Normalisation, finite_cloud, normalise_pair, prepare_cloud, voxel_downsample
-from .metrics import rotation_error_deg, translation_error
-from .solver import robust_pose
+from .geometry import LEGACY_FEATURES, normalise_pair, prepare_cloud
 
 CHECKPOINT_FORMAT = 1
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes.pt"
-DEFAULT_SECOND_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes_noise.pt"
-COINCIDENT_TOL = 1e-3    # of the normalisation scale: "the same point" for the cascade's test
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes_noise.pt"
 
 
 class CheckpointError(RuntimeError):
@@ -45,24 +50,21 @@ class RegistrationResult:
     """Result of one registration. Points are in metres, each in its own frame."""
 
     T_target_source: np.ndarray          # (4, 4) float64, maps source points into the target frame
-    source_points: np.ndarray            # (Ns, 3) float32, the subsampled source the network saw
+    source_points: np.ndarray            # (Ns, 3) float32, the network's source points
     target_points: np.ndarray            # (Nt, 3) float32
-    source_overlap: np.ndarray           # (Ns,) float32 in [0, 1]
+    source_overlap: np.ndarray           # (Ns,) float32 in [0, 1] (HOCE)
     target_overlap: np.ndarray           # (Nt,) float32 in [0, 1]
-    correspondences: np.ndarray          # (M, 2) int64: (index into source_points, into target_points)
-    weights: np.ndarray                  # (M,) float32 in [0, 1]; both the network's, whatever pose_from says
-    covariance: np.ndarray               # (6, 6) float64, ROS order x y z roll pitch yaw; of T's own
-                                         # support: the network's matches, or (pose_from "ransac") the
-                                         # nearest-neighbour pairs within inlier_distance
+    correspondences: np.ndarray          # (K, 2) int64: (index into source_points, into target_points)
+    weights: np.ndarray                  # (K,) float32 in [0, 1], the confidences the estimator used
+    inliers: np.ndarray                  # (K,) bool: correspondences the estimated pose explains
+    covariance: np.ndarray               # (6, 6) float64, ROS order x y z roll pitch yaw, from the inliers
     fitness: float                       # fraction of source points within inlier_distance after alignment
     inlier_distance: float               # metres
     valid: bool
     reason: str = ""                     # why not valid; "" when valid
     refined: str = "none"                # "none" | "icp"
+    voxel_size: float = 0.0              # metres of the grid that bounded the input (0: none)
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
-    network: str = "first"               # which network of the cascade answered: "first" | "second"
-    coincident: float = 0.0              # share of source points on a target point under the first answer
-    pose_from: str = "network"           # "network" | "ransac": which candidate gave T (engine.ransac_candidate)
 
 
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
@@ -123,61 +125,26 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def covariance_from_correspondences(src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
-                                    T: np.ndarray) -> np.ndarray:
-    """6x6 covariance (x y z roll pitch yaw) of the weighted point-to-point least squares at T.
-
-    Gauss-Newton: residual r_i = R p_i + t - q_i, Jacobian [I, -[R p_i]x]; covariance =
-    sigma^2 (J^T W J)^-1 with sigma^2 the weighted mean squared residual. Rows reorder from
-    (translation, rotation) which is already ROS order.
-    """
-    R, t = T[:3, :3], T[:3, 3]
-    rp = src @ R.T
-    res = rp + t - tgt
-    w = np.clip(w.astype(np.float64), 0.0, None)
-    if w.sum() <= 1e-12 or len(src) < 3:
-        return np.diag([1e6] * 6)
-    J = np.zeros((len(src), 3, 6))
-    J[:, :, :3] = np.eye(3)
-    x, y, z = rp[:, 0], rp[:, 1], rp[:, 2]
-    skew = np.zeros((len(src), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2] = -z, y
-    skew[:, 1, 0], skew[:, 1, 2] = z, -x
-    skew[:, 2, 0], skew[:, 2, 1] = -y, x
-    J[:, :, 3:] = -skew
-    H = np.einsum("n,nij,nik->jk", w, J, J)
-    sigma2 = float((w * (res ** 2).sum(1)).sum() / (3.0 * w.sum()))
-    try:
-        cov = np.linalg.inv(H) * max(sigma2, 1e-12)
-    except np.linalg.LinAlgError:
-        return np.diag([1e6] * 6)
-    cov = 0.5 * (cov + cov.T)
-    if not np.isfinite(cov).all():
-        return np.diag([1e6] * 6)
-    return cov
-
-
 class Registrar:
     """Registers two clouds with a CEGC checkpoint. Thread-safe: one registration at a time."""
 
     MIN_POINTS = 16
 
     def __init__(self, model: Any, device: str, checkpoint_path: str, metadata: dict[str, Any],
-                 preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None,
-                 second_model: Any = None) -> None:
+                 preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
         self.model = model
-        self.second_model = second_model
         self.device = device
         self.checkpoint_path = checkpoint_path
         self.metadata = metadata
         self.preprocess = copy.deepcopy(preprocess) if preprocess else PreprocessConfig()
         self.engine = copy.deepcopy(engine) if engine else EngineConfig()
+        self.compat = estimator.CompatibilityConfig()
         self._lock = threading.Lock()
-        # engine.compile: compiled graphs for clouds of the start-up num_points (a new size would
+        # engine.compile: a compiled graph for clouds of the start-up num_points (a new size would
         # recompile for ~45 s in the middle of a stream, so other sizes run eagerly).
-        self._compiled: dict[int, Any] = {}
-        self._compile_points = self.preprocess.num_points
-        self.compiled_runs = 0                # forward passes that used a compiled graph
+        self._compiled: Any = None
+        self._compile_key: tuple[int, int, str] = (self.preprocess.num_points, 0, "")
+        self.compiled_runs = 0                # forward passes that used the compiled graph
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
@@ -192,14 +159,9 @@ class Registrar:
         if engine.threads > 0:
             torch.set_num_threads(engine.threads)
         model, meta = load_checkpoint(path, dev)
-        second = None
-        if engine.second_checkpoint != "none":
-            second_path = engine.second_checkpoint or DEFAULT_SECOND_WEIGHTS
-            second, _ = load_checkpoint(second_path, dev)
-            engine.second_checkpoint = str(second_path)
         engine.checkpoint = str(path)
         engine.device = dev
-        return cls(model, dev, str(path), meta, preprocess, engine, second)
+        return cls(model, dev, str(path), meta, preprocess, engine)
 
     def update(self, preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
         """Change settings; they apply from the next register() call."""
@@ -207,48 +169,39 @@ class Registrar:
             if preprocess is not None:
                 self.preprocess = copy.deepcopy(preprocess)
             if engine is not None:
-                keep = (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device,
-                        self.engine.compile)
+                keep = (self.engine.checkpoint, self.engine.device, self.engine.compile)
                 self.engine = copy.deepcopy(engine)
-                (self.engine.checkpoint, self.engine.second_checkpoint, self.engine.device,
-                 self.engine.compile) = keep
+                self.engine.checkpoint, self.engine.device, self.engine.compile = keep
 
     def warm_up(self) -> float:
-        """With ``engine.compile``, compile every network now (seconds spent; 0 without it), so
+        """With ``engine.compile``, compile the network now (seconds spent; 0 without it), so
         that the first real pair does not pay for it."""
-        import torch
         if not self.engine.compile:
             return 0.0
         t0 = time.perf_counter()
+        rng = np.random.default_rng(0)
+        n = self.preprocess.num_points
         with self._lock:
-            for model in (self.model, self.second_model):
-                if model is None:
-                    continue
-                n = self._compile_points
-                g = torch.Generator().manual_seed(0)
-                pts = [torch.rand(1, n, 3, generator=g, device="cpu").to(self.device) for _ in range(2)]
-                nrm = [torch.nn.functional.normalize(torch.randn(1, n, 3, generator=g), dim=-1).to(self.device)
-                       for _ in range(2)]
-                desc = [torch.rand(1, n, model.cfg.desc_dim, generator=g).to(self.device) for _ in range(2)]
-                try:
-                    with torch.inference_mode():
-                        self._network(model, n, n)(pts[0], pts[1], nrm[0], nrm[1], desc[0], desc[1])
-                except Exception as err:   # e.g. no C++ compiler for inductor: stay usable
-                    self.engine.compile = False
-                    self._compiled.clear()
-                    raise RuntimeError(f"engine.compile failed, the networks run eagerly: {err}") from err
+            clouds = [rng.uniform(-1, 1, (4 * n, 3)) * [1.0, 1.0, 0.3] for _ in range(2)]
+            try:
+                self._register(clouds[0], clouds[1], self.preprocess, self.engine)
+            except Exception as err:   # e.g. no C++ compiler for inductor: stay usable
+                self.engine.compile = False
+                self._compiled = None
+                raise RuntimeError(f"engine.compile failed, the network runs eagerly: {err}") from err
         return time.perf_counter() - t0
 
-    def _network(self, model: Any, n_source: int, n_target: int) -> Any:
-        """The compiled graph of ``model`` for start-up-sized clouds under engine.compile, else the model."""
-        if not self.engine.compile or not n_source == n_target == self._compile_points:
-            return model
-        key = id(model)
-        if key not in self._compiled:
+    def _network(self, n_source: int, n_target: int, eng: EngineConfig) -> Any:
+        """The model, or under engine.compile a compiled one for start-up-sized clouds."""
+        if not eng.compile or not n_source == n_target == self.preprocess.num_points:
+            return self.model
+        key = (n_source, eng.learned_candidates + eng.fpfh_candidates, eng.candidates)
+        if self._compiled is None or key != self._compile_key:
             import torch
-            self._compiled[key] = torch.compile(model, dynamic=False)
+            self._compiled = _Compiled(self.model, torch.compile(self.model.score_candidates, dynamic=False))
+            self._compile_key = key
         self.compiled_runs += 1
-        return self._compiled[key]
+        return self._compiled
 
     def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
         """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
@@ -257,202 +210,73 @@ class Registrar:
 
     def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
-        """Cascade: the first network; when its answer does not put the clouds' shared points on
-        top of each other (no exact shared points: independent scans, noise, resampling), the
-        second network, whose answer is then returned unless it is invalid and the first is not."""
-        t0 = time.perf_counter()
-        src = finite_cloud("source", source_xyz, self.MIN_POINTS)
-        tgt = finite_cloud("target", target_xyz, self.MIN_POINTS)
-        if pre.voxel_size > 0:
-            src = voxel_downsample(src, pre.voxel_size).astype(np.float64)
-            tgt = voxel_downsample(tgt, pre.voxel_size).astype(np.float64)
-            for name, c in (("source", src), ("target", tgt)):
-                if len(c) < self.MIN_POINTS:
-                    raise ValueError(f"{name} has {len(c)} points after the {pre.voxel_size} m voxel grid, "
-                                     f"at least {self.MIN_POINTS} are needed")
-        src_n, tgt_n, norm = normalise_pair(src, tgt)
-        timings = {"preprocess": time.perf_counter() - t0}
-        res = self._solve(self.model, src, tgt, src_n, tgt_n, norm, pre, eng, timings)
-        if self.second_model is not None:
-            t1 = time.perf_counter()
-            # The test needs the exact alignment ICP gives; without engine.refine it refines privately.
-            T = res.T_target_source if res.refined == "icp" or not res.valid else \
-                self._icp(src, tgt, res.T_target_source, norm, eng)
-            res.coincident = _coincident(src, tgt, T, COINCIDENT_TOL * norm.scale) if res.valid else 0.0
-            timings["cascade_test"] = time.perf_counter() - t1
-            if res.coincident < eng.cascade_min_coincident:
-                first = res
-                second = self._solve(self.second_model, src, tgt, src_n, tgt_n, norm, pre, eng, timings,
-                                     prefix="second_")
-                second.network, second.coincident = "second", first.coincident
-                # An invalid second answer (no pose found) does not replace a valid first one.
-                res = second if second.valid or not first.valid else first
-                if eng.ransac_candidate:
-                    res = self._ransac_candidate(res, src, tgt, norm, pre, eng, timings)
-        res.timings = timings
-        timings["total"] = time.perf_counter() - t0
-        return res
-
-    def _solve(self, model: Any, src: np.ndarray, tgt: np.ndarray, src_n: np.ndarray, tgt_n: np.ndarray,
-               norm: Normalisation, pre: PreprocessConfig, eng: EngineConfig, timings: dict[str, float],
-               prefix: str = "") -> RegistrationResult:
-        """One network's answer: features, forward, pose, (ICP), metres."""
-        import torch
-        t0 = time.perf_counter()
-        rng = np.random.default_rng(pre.seed)
-        features = model.cfg.features()
-        ps = prepare_cloud(src_n, pre.num_points, rng, **features)
-        pt = prepare_cloud(tgt_n, pre.num_points, rng, **features)
-        t1 = time.perf_counter()
-        timings[prefix + "features"] = t1 - t0
-
-        def tens(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a)).unsqueeze(0).to(self.device)
-
-        net = self._network(model, len(ps.points), len(pt.points))
-        with torch.inference_mode():
-            out = net(tens(ps.points), tens(pt.points), tens(ps.normals), tens(pt.normals),
-                      tens(ps.desc), tens(pt.desc))
-        t2 = time.perf_counter()
-        timings[prefix + "network"] = t2 - t1
-
-        sel = out.src_idx[0].cpu().numpy()
-        corr = np.stack([sel, out.match[0].cpu().numpy()], axis=1).astype(np.int64)
-        weights = out.weights[0].float().cpu().numpy()
-        spacing_n = _median_spacing(pt.points.astype(np.float64))    # normalised units
-        if eng.solver == "robust":
-            R, t_n, _, valid = robust_pose(ps.points[corr[:, 0]], pt.points[corr[:, 1]], weights,
-                                           eng.robust_inlier_factor * spacing_n,
-                                           hypotheses=eng.robust_hypotheses, seed=pre.seed,
-                                           max_hypotheses=eng.robust_max_hypotheses)
-        else:
-            R = out.R[0].double().cpu().numpy()
-            t_n = out.t[0].double().cpu().numpy()
-            valid = bool(out.valid[0])
-        timings[prefix + "solver"] = time.perf_counter() - t2
-        T = norm.to_metres(R, t_n)
-        src_m = (ps.points.astype(np.float64) * norm.scale + norm.c_source)
-        tgt_m = (pt.points.astype(np.float64) * norm.scale + norm.c_target)
-        s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
-        t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
-        reason = "" if valid else (
-            "no hypothesis explained 3 or more correspondences" if eng.solver == "robust"
-            else "degenerate correspondences (weights ~0 or collinear points)")
-        if valid and not np.isfinite(T).all():
-            valid, reason = False, "non-finite transform"
+        """bound -> features -> match -> estimate -> refine -> verify, one timer per stage."""
+        timings: dict[str, float] = {}
+        clock = _StageClock(timings)
+        with clock("bound"):
+            bounded = bounding.bound_pair(source_xyz, target_xyz, pre, self.MIN_POINTS)
+            src, tgt = bounded.source, bounded.target
+        with clock("features"):
+            src_n, tgt_n, norm = normalise_pair(src, tgt)
+            rng = np.random.default_rng(pre.seed)
+            feats = self.model.cfg.features()
+            ps = prepare_cloud(src_n, pre.num_points, rng, support_points=pre.support_points, **feats)
+            pt = prepare_cloud(tgt_n, pre.num_points, rng, support_points=pre.support_points, **feats)
+            src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres
+            tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
+            inlier = eng.inlier_factor * refine.median_spacing(tgt_m)
+        with clock("match"):
+            m = matching.match(self._network(len(ps.points), len(pt.points), eng), ps, pt, eng, self.device)
+        with clock("estimate"):
+            c = m.correspondences
+            est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, self.compat)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = est.R, est.t
+            valid, reason = est.valid, est.reason
+            if valid and not np.isfinite(T).all():
+                valid, reason = False, "non-finite transform"
         refined = "none"
         if valid and eng.refine == "icp":
-            t3 = time.perf_counter()
-            T = self._icp(src, tgt, T, norm, eng)
-            refined = "icp"
-            timings[prefix + "refine"] = time.perf_counter() - t3
-        inlier = 2.0 * spacing_n * norm.scale                         # metres
-        fitness = _fitness(src_m, tgt_m, T, inlier)
-        cov = covariance_from_correspondences(src_m[corr[:, 0]], tgt_m[corr[:, 1]], weights, T)
+            with clock("refine"):
+                T = refine.icp(src, tgt, T, eng.icp_max_distance * norm.scale, eng.icp_max_iterations,
+                               eng.icp_points, pre.seed)
+                refined = "icp"
+        with clock("verify"):
+            fit = refine.fitness(src_m, tgt_m, T, inlier)
+            inl = est.inliers
+            cov = refine.covariance(src_m[c[inl, 0]], tgt_m[c[inl, 1]], m.weights[inl], T)
+        timings["total"] = sum(timings.values())
         return RegistrationResult(
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
-            source_overlap=s_ov, target_overlap=t_ov, correspondences=corr, weights=weights,
-            covariance=cov, fitness=fitness, inlier_distance=inlier, valid=valid, reason=reason,
-            refined=refined)
-
-    def _ransac_candidate(self, res: RegistrationResult, src: np.ndarray, tgt: np.ndarray,
-                          norm: Normalisation, pre: PreprocessConfig, eng: EngineConfig,
-                          timings: dict[str, float]) -> RegistrationResult:
-        """engine.ransac_candidate: Open3D RANSAC on FPFH (cegc_ros.baselines defaults, seeded by
-        preprocess.seed), refined like the network's answer, competes with it; the answer that
-        puts more of both clouds on each other wins.
-
-        Why: on clouds of two different views (10-50% overlap) the networks, trained on a CPU
-        budget, find few true correspondences and RANSAC+FPFH is right more often; on noisy
-        clouds it is the other way round (README, "Accuracy"). Neither knows when it is wrong,
-        so the two answers are verified on the clouds themselves. When they agree (within 5 deg
-        and two voxels) the network's stays: on shared points it is the more precise (0.017 deg
-        against 0.97 on the one synthetic 7Scenes test pair that reached this check). Otherwise
-        the higher score wins. Score of a pose T: the share of the source within 1.5 voxels of
-        the target after T plus the share of the target within 1.5 voxels of the source after
-        T^-1, on both clouds under RANSAC's voxel grid (0.02 x the larger bounding-box side).
-        Measured alternatives (80 synthetic validation fragment pairs and the 3 real SUN3D
-        pairs): the one-way share chose as well on the validation pairs (0.575) and worse on
-        the real ones (2/3 against 3/3), so the real pairs decided this; a 5% margin for the
-        network chose worse on the validation pairs (0.56 against 0.575); counting the
-        network's and FPFH's matches that a pose explains chose no better than the shares
-        (measured on the synthetic fragment test bag and the real pairs). Checked afterwards on
-        60 pairs of fresh rooms (fragments, train split, seed 2): two-way 0.533 (= always
-        picking the right candidate), one-way 0.517, RANSAC+ICP alone 0.500, networks 0.400.
-        """
-        from . import baselines
-        t0 = time.perf_counter()
-        try:
-            cand = baselines.register_ransac(src, tgt, baselines.BaselineConfig(seed=pre.seed, threads=eng.threads))
-        except ValueError:            # too few points under its voxel grid: the network's answer stands
-            timings["ransac"] = time.perf_counter() - t0
-            return res
-        T = cand.T_target_source
-        if cand.valid and eng.refine == "icp":
-            T = self._icp(src, tgt, T, norm, eng)
-        v = cand.voxel_size
-        src_v, tgt_v = voxel_downsample(src, v).astype(np.float64), voxel_downsample(tgt, v).astype(np.float64)
-
-        def score(X: np.ndarray) -> float:
-            return _fitness(src_v, tgt_v, X, 1.5 * v) + _fitness(tgt_v, src_v, np.linalg.inv(X), 1.5 * v)
-
-        if cand.valid and np.isfinite(T).all() and (not res.valid or (
-                not _agree(T, res.T_target_source, 2 * v) and score(T) > score(res.T_target_source))):
-            res.T_target_source, res.valid, res.reason, res.pose_from = T, True, "", "ransac"
-            res.refined = "icp" if eng.refine == "icp" else "none"
-            src_m, tgt_m = res.source_points.astype(np.float64), res.target_points.astype(np.float64)
-            res.fitness = _fitness(src_m, tgt_m, T, res.inlier_distance)
-            res.covariance = _nearest_neighbour_covariance(src_m, tgt_m, T, res.inlier_distance)
-        timings["ransac"] = time.perf_counter() - t0
-        return res
-
-    @staticmethod
-    def _icp(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, norm: Normalisation,
-             eng: EngineConfig) -> np.ndarray:
-        """Open3D point-to-plane ICP on the (voxelized) clouds, started from T."""
-        import open3d as o3d
-        reg = o3d.pipelines.registration
-        dist = eng.icp_max_distance * norm.scale
-        ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
-        pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
-        pt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * dist, max_nn=30))
-        res = reg.registration_icp(ps, pt, dist, T, reg.TransformationEstimationPointToPlane(),
-                                   reg.ICPConvergenceCriteria(max_iteration=eng.icp_max_iterations))
-        out = np.asarray(res.transformation, np.float64)
-        return out if np.isfinite(out).all() else T
+            source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
+            weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
+            reason=reason, refined=refined, voxel_size=bounded.voxel, timings=timings)
 
 
-def _median_spacing(points: np.ndarray) -> float:
-    """Median nearest-neighbour distance within one cloud."""
-    from scipy.spatial import cKDTree
-    d, _ = cKDTree(points).query(points, k=2)
-    return float(np.median(d[:, 1]))
+class _StageClock:
+    """``with clock("name"):`` adds the block's wall time to timings["name"]."""
+
+    def __init__(self, timings: dict[str, float]) -> None:
+        self.timings = timings
+
+    def __call__(self, name: str) -> _StageClock:
+        self._name = name
+        return self
+
+    def __enter__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.timings[self._name] = self.timings.get(self._name, 0.0) + time.perf_counter() - self._t0
 
 
-def _agree(A: np.ndarray, B: np.ndarray, max_translation: float, max_rotation_deg: float = 5.0) -> bool:
-    """Whether two 4x4 poses are within max_rotation_deg and max_translation of each other."""
-    return bool(rotation_error_deg(A[:3, :3], B[:3, :3]) < max_rotation_deg
-                and translation_error(A[:3, 3], B[:3, 3]) < max_translation)
+class _Compiled:
+    """The model with score_candidates replaced by its compiled graph (engine.compile)."""
 
+    def __init__(self, model: Any, compiled: Any) -> None:
+        self.cfg = model.cfg
+        self._model = model
+        self.score_candidates = compiled
 
-def _nearest_neighbour_covariance(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> np.ndarray:
-    """Covariance (as covariance_from_correspondences) of T over the nearest-neighbour pairs within
-    dist after T: for a pose that did not come from the network's correspondences."""
-    from scipy.spatial import cKDTree
-    d, j = cKDTree(tgt).query(src @ T[:3, :3].T + T[:3, 3], k=1)
-    keep = d <= dist
-    if keep.sum() < 3:
-        return np.diag([1e6] * 6)
-    return covariance_from_correspondences(src[keep], tgt[j[keep]], np.ones(int(keep.sum())), T)
-
-
-def _coincident(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, tol: float, max_points: int = 4000) -> float:
-    """Share of source points (at most max_points, evenly strided) within tol of a target point after T."""
-    return _fitness(src[::max(1, len(src) // max_points)], tgt, T, tol)
-
-
-def _fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:
-    """Fraction of source points within dist of the target after applying T."""
-    from scipy.spatial import cKDTree
-    d, _ = cKDTree(tgt).query(src @ T[:3, :3].T + T[:3, 3], k=1)
-    return float((d <= dist).mean())
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._model(*args, **kwargs)

@@ -17,6 +17,12 @@ features.py, hoce.py and cams.py):
    ``match_temperature``) so the pose loss reaches the scores; inference uses the paper's
    argmax. The loss adds a dense correspondence term (see losses.py).
 3. The confidence head w_i is additionally supervised with match correctness (losses.py).
+4. :meth:`CEGC.score_candidates` (the engine's path) scores, for every source point, k
+   candidate partners (its nearest neighbours in the learned feature space, plus any the
+   caller adds, e.g. FPFH neighbours) instead of all pairs of the top-N sets, and leaves the
+   pose to the engine's estimator (cegc_ros/estimator.py). HOCE's overlap confidence becomes a
+   per-point weight rather than a hard top-N cut, so low-overlap pairs keep their few true
+   matches. ``forward`` keeps the paper's all-pairs path with argmax + weighted SVD.
 Ground truth never enters forward(): labels are made in the loss code.
 """
 
@@ -25,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .cams import CAMS
@@ -49,6 +56,19 @@ class CEGCOutput:
     R: Tensor                    # (B, 3, 3) rotation of T_target_source
     t: Tensor                    # (B, 3)
     valid: Tensor                # (B,) bool
+
+
+@dataclass
+class CandidateOutput:
+    """What score_candidates() returns. Indices refer to the input clouds' point order."""
+
+    src_overlap_logits: Tensor   # (B, N) HOCE
+    tgt_overlap_logits: Tensor   # (B, M)
+    candidates: Tensor           # (B, N, k) target index of each source point's candidates
+    scores: Tensor               # (B, N, k) CAMS/CFM pair logits F''_H
+    conf_logits: Tensor          # (B, N) logits of w_i (row confidence)
+    src_features: Tensor         # (B, N, C2) after self/cross attention
+    tgt_features: Tensor         # (B, M, C2)
 
 
 def _take(x: Tensor, idx: Tensor) -> Tensor:
@@ -77,6 +97,34 @@ class CEGC(nn.Module):
         if normals is None or desc is None:
             raise ValueError("variant 'ri' needs normals and descriptors for every cloud")
         return self.agnn(ppf_edges(xyz, normals, idx), idx, desc)
+
+    def score_candidates(self, src: Tensor, tgt: Tensor, src_normals: Tensor | None = None,
+                         tgt_normals: Tensor | None = None, src_desc: Tensor | None = None,
+                         tgt_desc: Tensor | None = None, k_learned: int = 4,
+                         extra: Tensor | None = None) -> CandidateOutput:
+        """Overlap logits and the scores of each source point's candidate partners.
+
+        src (B, N, 3), tgt (B, M, 3) normalised; normals / descriptors as in forward();
+        ``k_learned`` nearest target points by cosine similarity of the attention features
+        (0: none); ``extra`` (B, N, ke) more candidate indices into the target (e.g. FPFH
+        neighbours), appended after the learned ones. Needs at least one candidate.
+        """
+        fx = self.encode(src, src_normals, src_desc)
+        fy = self.encode(tgt, tgt_normals, tgt_desc)
+        fx, fy = self.context(fx, fy)
+        lx, ly = self.hoce(fx, fy)                                       # (B, N), (B, M)
+        parts = []
+        k = min(k_learned, tgt.shape[1])
+        if k > 0:
+            sim = F.normalize(fx, dim=-1) @ F.normalize(fy, dim=-1).transpose(1, 2)   # (B, N, M)
+            parts.append(sim.topk(k, dim=-1).indices)
+        if extra is not None:
+            parts.append(extra.to(device=src.device, dtype=torch.long))
+        if not parts:
+            raise ValueError("score_candidates needs k_learned > 0 or extra candidates")
+        cand = torch.cat(parts, dim=-1)                                  # (B, N, k)
+        scores, conf = self.cams.score_candidates(src, tgt, fx, fy, cand, src_desc, tgt_desc)
+        return CandidateOutput(lx, ly, cand, scores, conf, fx, fy)
 
     def forward(self, src: Tensor, tgt: Tensor,
                 src_normals: Tensor | None = None, tgt_normals: Tensor | None = None,

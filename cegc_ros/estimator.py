@@ -1,0 +1,226 @@
+"""Pose from weighted correspondences: a spatial-compatibility estimator seeded by confidence.
+
+Two estimators share one interface, ``estimate(src, tgt, weights, inlier_distance, cfg)``:
+
+``compatibility`` (the default) follows SC2-PCR (Chen et al., CVPR 2022, "SC^2-PCR: A Second
+Order Spatial Compatibility for Efficient and Robust Point Cloud Registration"), written from
+the paper:
+
+1. First-order compatibility of correspondences i, j (rigid motions keep lengths):
+   ``d_ij = | ||p_i - p_j|| - ||q_i - q_j|| |``, hard ``C_ij = [d_ij < d_thr]`` and soft
+   ``S_ij = max(0, 1 - d_ij^2 / d_thr^2)``, zero diagonal.
+2. Seeds: the leading eigenvector of ``S`` (spectral matching) times the confidence ``w``,
+   then non-maximum suppression in the source (a seed beats every correspondence within
+   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds.
+3. Second-order compatibility of a seed s with every j: ``SC2_sj = C_sj * (C C)_sj`` (how
+   many correspondences both agree with), only for the seeds' rows.
+4. Consensus per seed: its ``k1`` most compatible correspondences (by ``SC2_sj * w_j``); their
+   local SC2 matrix's leading eigenvector times ``w`` weights a Kabsch solve; a second pass
+   takes the ``k2`` nearest correspondences in residual among those within ``inlier_distance``
+   and solves again (the paper's two-stage sampling).
+5. Selection: every hypothesis is scored on all correspondences by
+   ``sum_i w_i * max(0, 1 - r_i / inlier_distance)`` (a truncated, confidence-weighted count).
+6. Refinement: the best hypothesis is re-solved ``refine_iterations`` times by weighted SVD over
+   its inliers, weights ``w_i / (1 + (r_i / inlier_distance)^2)`` (the paper's post-refinement,
+   with the learned confidence as prior).
+
+With uniform weights this is SC2-PCR (the ``sc2pcr`` peer of ``cegc-eval`` calls exactly
+this). Seeding it with CEGC's confidence is the fusion: seeds, consensus sets and the final
+count all prefer what the network trusts, while the compatibility test keeps wrong but
+confident matches out (a confidence never makes two correspondences compatible).
+
+``svd`` is the paper's estimator: one confidence-weighted Kabsch over all correspondences.
+
+Costs (K correspondences, S seeds): the compatibility matrix is K x K (K is capped by the
+caller, ``engine.max_correspondences``), second order only for the S seed rows: O(S K^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+ESTIMATORS = ("compatibility", "svd")
+
+
+@dataclass
+class CompatibilityConfig:
+    """Settings of the compatibility estimator; lengths in multiples of ``inlier_distance``.
+
+    SC2-PCR's 3DMatch settings with a 5 cm voxel are inlier threshold = d_thr = NMS radius =
+    0.10 m (2 voxels), seed ratio 0.2, k1 = 30, k2 = 20, 10 refinement iterations.
+    """
+
+    compat_factor: float = 1.0        # d_thr = compat_factor x inlier_distance
+    nms_factor: float = 1.0           # NMS radius = nms_factor x inlier_distance
+    seed_ratio: float = 0.2
+    max_seeds: int = 200
+    k1: int = 30
+    k2: int = 20
+    refine_iterations: int = 10
+
+
+@dataclass
+class Estimate:
+    """R (3, 3), t (3,) with tgt ~ R src + t; ``inliers`` (K,) bool under the final pose."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: np.ndarray
+    valid: bool
+    reason: str = ""
+
+
+def kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Weighted Kabsch for (M, 3) point sets; None when the weights vanish or the points are
+    collinear (rotation not determined)."""
+    ws = float(w.sum())
+    if ws <= 1e-12 or len(src) < 3:
+        return None
+    wn = w / ws
+    cs, ct = wn @ src, wn @ tgt
+    H = (src - cs).T @ ((tgt - ct) * wn[:, None])
+    U, S, Vt = np.linalg.svd(H)
+    if S[1] < 1e-9 * max(S[0], 1e-12):
+        return None
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, ct - R @ cs
+
+
+def batched_kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """src, tgt (H, m, 3), w (H, m) -> R (H, 3, 3), t (H, 3). Degenerate sets give some rotation;
+    callers score every hypothesis, so a bad one simply loses."""
+    wn = w / np.maximum(w.sum(1, keepdims=True), 1e-12)                   # (H, m)
+    cs = np.einsum("hm,hmi->hi", wn, src)
+    ct = np.einsum("hm,hmi->hi", wn, tgt)
+    Hm = np.einsum("hm,hmi,hmj->hij", wn, src - cs[:, None], tgt - ct[:, None])
+    U, _, Vt = np.linalg.svd(Hm)
+    V = np.transpose(Vt, (0, 2, 1))
+    d = np.sign(np.linalg.det(V @ np.transpose(U, (0, 2, 1))))
+    d[d == 0] = 1.0
+    D = np.zeros((len(src), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = V @ D @ np.transpose(U, (0, 2, 1))
+    return R, ct - np.einsum("hij,hj->hi", R, cs)
+
+
+def _leading_eigenvector(M: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Power iteration on non-negative symmetric matrices, batched over leading axes: (..., n, n) -> (..., n)."""
+    v = np.ones(M.shape[:-1])
+    for _ in range(iterations):
+        v = np.einsum("...ij,...j->...i", M, v)
+        v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+    return v
+
+
+def _residuals(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray) -> np.ndarray:
+    """R (H, 3, 3), t (H, 3) -> residuals (H, K) of every correspondence."""
+    return np.linalg.norm(np.einsum("hij,kj->hki", R, src) + t[:, None] - tgt[None], axis=2)
+
+
+def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
+                           cfg: CompatibilityConfig | None = None) -> Estimate:
+    """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0."""
+    cfg = cfg or CompatibilityConfig()
+    src = np.asarray(src, np.float64)
+    tgt = np.asarray(tgt, np.float64)
+    w = np.clip(np.nan_to_num(np.asarray(w, np.float64)), 0.0, None)
+    K = len(src)
+    none = Estimate(np.eye(3), np.zeros(3), np.zeros(K, bool), False)
+    if K < 3 or w.sum() <= 1e-12:
+        none.reason = f"{K} correspondences with positive confidence, at least 3 are needed"
+        return none
+    thr = float(inlier_distance)
+    d_thr = cfg.compat_factor * thr
+    from scipy.spatial.distance import cdist
+    ds = cdist(src, src).astype(np.float32)                                # (K, K)
+    d = np.abs(ds - cdist(tgt, tgt).astype(np.float32))
+    hard = (d < d_thr).astype(np.float32)
+    np.fill_diagonal(hard, 0.0)
+    soft = np.clip(1.0 - (d / d_thr) ** 2, 0.0, None).astype(np.float32)
+    np.fill_diagonal(soft, 0.0)
+    del d
+
+    # 2. seeds: spectral score x confidence, non-maximum suppression in the source.
+    score = _leading_eigenvector(soft) * w
+    near = ds < cfg.nms_factor * thr
+    local_max = score >= np.where(near, score[None, :], -np.inf).max(axis=1)
+    cand = np.flatnonzero(local_max & (score > 0))
+    n_seeds = max(1, min(cfg.max_seeds, int(np.ceil(cfg.seed_ratio * K)), len(cand)))
+    if len(cand) == 0:
+        none.reason = "no correspondence is compatible with any other"
+        return none
+    seeds = cand[np.argsort(-score[cand])[:n_seeds]]                       # (S,)
+
+    # 3-4. second-order compatibility of the seeds' rows, consensus sets, local spectral weights.
+    sc2 = hard[seeds] * (hard[seeds] @ hard)                                # (S, K)
+    k1 = min(cfg.k1, K)
+    rank = sc2 * w[None].astype(np.float32)
+    rank[np.arange(len(seeds)), seeds] = np.inf                            # the seed is in its own set
+    sets = np.argpartition(-rank, k1 - 1, axis=1)[:, :k1]                  # (S, k1)
+    loc = hard[sets[:, :, None], sets[:, None, :]]                         # (S, k1, k1)
+    loc_sc2 = loc * (loc @ loc)
+    lw = _leading_eigenvector(loc_sc2) * w[sets]                           # (S, k1)
+    lw[lw.sum(1) <= 1e-12] = 1.0
+    R, t = batched_kabsch(src[sets], tgt[sets], lw)
+    # second stage: the k2 best-fitting correspondences among the hypothesis' inliers.
+    res = _residuals(R, t, src, tgt)                                       # (S, K)
+    k2 = min(cfg.k2, K)
+    near2 = np.argpartition(res, k2 - 1, axis=1)[:, :k2]                   # (S, k2)
+    w2 = w[near2] * (np.take_along_axis(res, near2, axis=1) < thr)
+    ok2 = (w2 > 0).sum(1) >= 3
+    if ok2.any():
+        R2, t2 = batched_kabsch(src[near2[ok2]], tgt[near2[ok2]], w2[ok2])
+        R, t = np.concatenate([R, R2]), np.concatenate([t, t2])
+        res = np.concatenate([res, _residuals(R2, t2, src, tgt)])
+
+    # 5. selection by the confidence-weighted truncated count.
+    total = (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
+    best = int(total.argmax())
+    Rb, tb, rb = R[best], t[best], res[best]
+
+    # 6. refinement on the inliers with robust weights.
+    for _ in range(cfg.refine_iterations):
+        inl = rb < thr
+        if inl.sum() < 3:
+            break
+        sol = kabsch(src[inl], tgt[inl], w[inl] / (1.0 + (rb[inl] / thr) ** 2))
+        if sol is None:
+            break
+        Rn, tn = sol
+        rn = np.linalg.norm(src @ Rn.T + tn - tgt, axis=1)
+        if (w * np.clip(1.0 - rn / thr, 0, None)).sum() + 1e-12 < (w * np.clip(1.0 - rb / thr, 0, None)).sum():
+            break
+        Rb, tb, rb = Rn, tn, rn
+    inliers = rb < thr
+    if inliers.sum() < 3:
+        return Estimate(Rb, tb, inliers, False, "fewer than 3 correspondences agree with any hypothesis")
+    return Estimate(Rb, tb, inliers, True)
+
+
+def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
+                 cfg: CompatibilityConfig | None = None) -> Estimate:
+    """The paper's estimator: one confidence-weighted Kabsch over all correspondences."""
+    src = np.asarray(src, np.float64)
+    tgt = np.asarray(tgt, np.float64)
+    w = np.clip(np.nan_to_num(np.asarray(w, np.float64)), 0.0, None)
+    sol = kabsch(src, tgt, w)
+    if sol is None:
+        return Estimate(np.eye(3), np.zeros(3), np.zeros(len(src), bool), False,
+                        "degenerate correspondences (weights ~0 or collinear points)")
+    R, t = sol
+    inliers = np.linalg.norm(src @ R.T + t - tgt, axis=1) < inlier_distance
+    return Estimate(R, t, inliers, True)
+
+
+def estimate(name: str, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
+             cfg: CompatibilityConfig | None = None) -> Estimate:
+    """Dispatch by estimator name (``ESTIMATORS``)."""
+    if name == "compatibility":
+        return estimate_compatibility(src, tgt, w, inlier_distance, cfg)
+    if name == "svd":
+        return estimate_svd(src, tgt, w, inlier_distance, cfg)
+    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")

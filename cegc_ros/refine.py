@@ -1,0 +1,78 @@
+"""Stages 5 and 6 of the engine: ICP polish on bounded clouds, then the verdict.
+
+ICP runs on at most ``engine.icp_points`` points per cloud (a seeded subsample of the bounded
+clouds), so its cost does not depend on the input size. The verdict measures ``fitness`` (the
+share of the network's source points within ``inlier_distance`` of the network's target points
+after the pose) and a covariance of the pose from the estimator's inlier correspondences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def icp(source: np.ndarray, target: np.ndarray, T: np.ndarray, max_distance: float, iterations: int,
+        max_points: int, seed: int = 0) -> np.ndarray:
+    """Open3D point-to-plane ICP of (N, 3) onto (M, 3) metres, started from T (4x4); at most
+    max_points per cloud. Returns T unchanged when ICP produces a non-finite transform."""
+    import open3d as o3d
+    reg = o3d.pipelines.registration
+    rng = np.random.default_rng(seed)
+
+    def capped(p: np.ndarray) -> np.ndarray:
+        return p if len(p) <= max_points else p[np.sort(rng.choice(len(p), max_points, replace=False))]
+
+    ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(capped(source)))
+    pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(capped(target)))
+    pt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * max_distance, max_nn=30))
+    res = reg.registration_icp(ps, pt, max_distance, T, reg.TransformationEstimationPointToPlane(),
+                               reg.ICPConvergenceCriteria(max_iteration=iterations))
+    out = np.asarray(res.transformation, np.float64)
+    return out if np.isfinite(out).all() else T
+
+
+def fitness(source: np.ndarray, target: np.ndarray, T: np.ndarray, distance: float) -> float:
+    """Fraction of source points within distance of the target after applying T."""
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(target).query(source @ T[:3, :3].T + T[:3, 3], k=1)
+    return float((d <= distance).mean())
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance within one cloud."""
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def covariance(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """6x6 covariance (x y z roll pitch yaw) of the weighted point-to-point least squares at T.
+
+    Gauss-Newton: residual r_i = R p_i + t - q_i, Jacobian [I, -[R p_i]x]; covariance =
+    sigma^2 (J^T W J)^-1 with sigma^2 the weighted mean squared residual. Rows (translation,
+    rotation) are already ROS order. A diagonal of 1e6 when it is not determined.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    rp = src @ R.T
+    res = rp + t - tgt
+    w = np.clip(w.astype(np.float64), 0.0, None)
+    if w.sum() <= 1e-12 or len(src) < 3:
+        return np.diag([1e6] * 6)
+    J = np.zeros((len(src), 3, 6))
+    J[:, :, :3] = np.eye(3)
+    x, y, z = rp[:, 0], rp[:, 1], rp[:, 2]
+    skew = np.zeros((len(src), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -z, y
+    skew[:, 1, 0], skew[:, 1, 2] = z, -x
+    skew[:, 2, 0], skew[:, 2, 1] = -y, x
+    J[:, :, 3:] = -skew
+    H = np.einsum("n,nij,nik->jk", w, J, J)
+    sigma2 = float((w * (res ** 2).sum(1)).sum() / (3.0 * w.sum()))
+    try:
+        cov = np.linalg.inv(H) * max(sigma2, 1e-12)
+    except np.linalg.LinAlgError:
+        return np.diag([1e6] * 6)
+    cov = 0.5 * (cov + cov.T)
+    if not np.isfinite(cov).all():
+        return np.diag([1e6] * 6)
+    return cov
