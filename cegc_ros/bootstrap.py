@@ -1,32 +1,41 @@
-"""Set up ``.venv/`` on first use, then run a job in it: ``python3 -m cegc_ros.bootstrap JOB``.
+"""Set up ``.venv/`` on first use, then run a job in it: ``python3 -m cegc_ros.bootstrap [-v] JOB``.
 
 Jobs:
-    demo [ARGS]      run ``cegc-demo`` (replays the bundled pairs, prints the paper's metrics)
+    demo [ARGS]      run ``cegc-demo``: generate 10 synthetic 7Scenes-style test pairs, replay
+                     them through register_node over DDS, run the Open3D baselines on the same
+                     pairs, print one table (report in .cache/demo/report/)
     test [ARGS]      run ``python -m pytest -q test`` (ARGS go to pytest: ``-k pose``,
                      ``test/test_pose.py``)
     setup            only install; print nothing else
     env              print ``export`` lines: ``eval "$(python3 -m cegc_ros.bootstrap env)"``
     run CMD [ARGS]   run any command in the environment (``run register_node --help``)
+Options (before the job):
+    -v, --verbose    show pip's and apt-get's output (by default it goes to .venv/setup.log)
+Environment:
+    CEGC_TORCH_INDEX=cpu   install torch's CPU build from download.pytorch.org (or =URL of
+                           another index); unset, pip takes torch from its usual indexes
+    CEGC_NO_JEMALLOC=1     do not preload jemalloc
 
 Standard library only: this runs on a bare ``python3 >= 3.10`` before anything is installed.
 
-What it does, each step skipped when already done:
+What it does, each step skipped when already done, one progress line per step that runs:
 1. System libraries: ``libusb-1.0-0`` (Open3D cannot be imported without it) is installed with
    apt-get when running as root, otherwise the bootstrap stops with one line naming the package.
    ``libjemalloc2`` is installed the same way but optionally; when present it is preloaded into
-   the job (``LD_PRELOAD``, ``MALLOC_CONF=dirty_decay_ms:-1``), which roughly halves the time
-   of large torch temporaries here. ``CEGC_NO_JEMALLOC=1`` turns that off.
+   the job (``LD_PRELOAD``, ``MALLOC_CONF=dirty_decay_ms:-1``; :mod:`cegc_ros.allocator`, which
+   the installed console scripts use too), which roughly halves the time of large torch
+   temporaries here. ``CEGC_NO_JEMALLOC=1`` turns that off.
 2. ``.venv/``: created with this interpreter; ``pip install -r requirements.txt`` then a regular
    (not editable) ``pip install .`` of this repository, because only a regular install puts
    ``share/cegc_ros`` (ament index marker, package.xml, params, weights) into the prefix where
    ``ament_index_python`` finds it. A stamp in ``.venv/`` records hashes of what each step
-   installed: requirements are reinstalled only when ``requirements.txt`` changes, the package
-   (seconds, ``--no-deps``) whenever its sources, params or weights change. Repeat runs with
-   nothing changed do not start pip at all.
+   installed: requirements are reinstalled only when ``requirements.txt`` (or
+   ``CEGC_TORCH_INDEX``) changes, the package (seconds, ``--no-deps``) whenever its sources,
+   params or weights change. Repeat runs with nothing changed do not start pip at all.
 3. The job's environment: ``.venv/bin`` first on PATH, the venv prepended to
    ``AMENT_PREFIX_PATH``, DDS kept on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``)
    and a random ``ROS_DOMAIN_ID`` in 1..100 unless one is set, so parallel runs do not talk to
-   each other.
+   each other. ``demo`` and ``test`` print the domain they use.
 """
 
 from __future__ import annotations
@@ -37,18 +46,24 @@ import hashlib
 import json
 import os
 import random
+import re
 import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
+
+from .allocator import allocator_environment, jemalloc_path
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = ROOT / ".venv"
 STAMP = VENV / ".cegc_bootstrap.json"
 LOCK = VENV / ".cegc_bootstrap.lock"
+#: Output of pip, apt-get and venv of the last set-up run (shown instead with -v).
+LOG = VENV / "setup.log"
 
 #: What ``pip install .`` reads: setup.py's inputs. Everything else in the repo is ignored.
 PACKAGE_INPUTS = ("setup.py", "setup.cfg", "package.xml", "resource", "params", "cegc_ros",
@@ -57,9 +72,14 @@ _IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", ".pytest_
 
 REQUIRED_LIBS = {"libusb-1.0-0": "usb-1.0"}  # Debian package -> ctypes.util library name
 OPTIONAL_LIBS = {"libjemalloc2": "jemalloc"}
-JEMALLOC_SONAME = "libjemalloc.so.2"
+
+#: CEGC_TORCH_INDEX shorthands -> package index URL (anything else must be a URL).
+TORCH_INDEXES = {"cpu": "https://download.pytorch.org/whl/cpu"}
 
 USAGE = __doc__.split("\n\n")[1]
+
+#: -v: subprocess output goes to the terminal instead of LOG.
+VERBOSE = False
 
 
 class BootstrapError(Exception):
@@ -68,6 +88,84 @@ class BootstrapError(Exception):
 
 def log(message: str) -> None:
     print(f"[bootstrap] {message}", file=sys.stderr, flush=True)
+
+
+def format_elapsed(seconds: float) -> str:
+    """``4.2 s``, ``38 s``, ``3 min 05 s``."""
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    minutes, sec = divmod(round(seconds), 60)
+    return f"{minutes} min {sec:02d} s"
+
+
+class Phase:
+    """What a step's progress line ends with: ``done`` unless the step says otherwise."""
+
+    def __init__(self) -> None:
+        self.outcome = "done"
+
+
+@contextlib.contextmanager
+def phase(text: str) -> Iterator[Phase]:
+    """One progress line for a set-up step: ``[bootstrap] text ... done, 12 s``."""
+    t0 = time.monotonic()
+    if VERBOSE:
+        log(f"{text} ...")
+    else:
+        print(f"[bootstrap] {text} ... ", end="", file=sys.stderr, flush=True)
+    step = Phase()
+    try:
+        yield step
+    except BaseException:
+        step.outcome = "failed"
+        raise
+    finally:
+        took = format_elapsed(time.monotonic() - t0)
+        if VERBOSE:
+            log(f"{text}: {step.outcome}, {took}")
+        else:
+            print(f"{step.outcome}, {took}", file=sys.stderr, flush=True)
+
+
+_log_opened = False
+
+
+def run_logged(cmd: list[str], what: str, **kwargs) -> int:
+    """Run ``cmd``; its output goes to LOG (the terminal with -v). Returns the exit code."""
+    global _log_opened
+    if VERBOSE:
+        log(" ".join(shlex.quote(a) for a in cmd))
+        return subprocess.run(cmd, stdin=subprocess.DEVNULL, **kwargs).returncode
+    LOG.parent.mkdir(parents=True, exist_ok=True)
+    with LOG.open("a" if _log_opened else "w") as fh:   # the log holds this run only
+        _log_opened = True
+        fh.write(f"\n$ {' '.join(shlex.quote(a) for a in cmd)}   # {what}\n")
+        fh.flush()
+        return subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=fh,
+                              stderr=subprocess.STDOUT, **kwargs).returncode
+
+
+def last_error_line(text: str) -> str:
+    """The line of a pip / apt-get log that says what went wrong (its last ERROR line)."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("$ ")]
+    errors = [ln for ln in lines if ln.startswith(("ERROR", "E:", "error:"))]
+    return (errors or lines or [""])[-1]
+
+
+def _log_tail() -> str:
+    """The log's error line and where the full log is."""
+    try:
+        line = last_error_line(LOG.read_text(errors="replace"))
+    except OSError:
+        line = ""
+    return (f"{line} " if line else "") + f"(full log: {LOG}; -v shows it)"
+
+
+def _failure(what: str, code: int) -> BootstrapError:
+    detail = "" if VERBOSE else f": {_log_tail()}"
+    return BootstrapError(f"{what} failed with exit code {code}{detail}")
 
 
 # --- system libraries --------------------------------------------------------------------
@@ -82,11 +180,12 @@ def _apt_install(packages: list[str]) -> bool:
     if not packages or os.geteuid() != 0 or shutil.which("apt-get") is None:
         return False
     env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
-    log(f"installing system packages: {' '.join(packages)}")
-    for cmd in (["apt-get", "update", "-qq"],
-                ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *packages]):
-        if subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL).returncode != 0:
-            return False
+    with phase(f"installing system packages {' '.join(packages)} (apt-get)") as step:
+        for cmd in (["apt-get", "update", "-qq"],
+                    ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *packages]):
+            if run_logged(cmd, "apt-get", env=env) != 0:
+                step.outcome = (f"failed: {_log_tail()}" if not VERBOSE else "failed")
+                return False
     return True
 
 
@@ -104,22 +203,6 @@ def ensure_system_libraries() -> None:
         raise BootstrapError(
             f"missing system package {' '.join(still)} (Open3D needs libusb-1.0.so.0): "
             f"install it with `sudo apt-get install {' '.join(still)}` and run again")
-
-
-def jemalloc_path() -> str | None:
-    """Full path of libjemalloc.so.2 from the linker cache, or None."""
-    if ctypes.util.find_library("jemalloc") is None:
-        return None
-    try:
-        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True,
-                             check=False).stdout
-    except OSError:
-        out = ""
-    for line in out.splitlines():
-        name, _, path = line.strip().partition(" => ")
-        if name.startswith(JEMALLOC_SONAME) and Path(path).is_file():
-            return path
-    return JEMALLOC_SONAME  # the dynamic linker also resolves a bare soname
 
 
 # --- virtual environment -----------------------------------------------------------------
@@ -140,9 +223,50 @@ def _sha256_files(paths: list[Path]) -> str:
     return digest.hexdigest()
 
 
-def requirements_hash() -> str:
+def torch_index(env: dict[str, str] | None = None) -> str | None:
+    """The package index torch comes from, from CEGC_TORCH_INDEX (None: pip's usual ones)."""
+    value = (os.environ if env is None else env).get("CEGC_TORCH_INDEX", "").strip()
+    if not value:
+        return None
+    url = TORCH_INDEXES.get(value, value)
+    if not url.startswith(("https://", "http://", "file:")):
+        raise BootstrapError(f"CEGC_TORCH_INDEX={value!r} is neither "
+                             f"{' nor '.join(TORCH_INDEXES)} nor an index URL")
+    return url
+
+
+def requirements_hash(env: dict[str, str] | None = None) -> str:
     python = f"{sys.version_info.major}.{sys.version_info.minor}"
-    return python + ":" + _sha256_files([ROOT / "requirements.txt"])
+    index = torch_index(env)
+    return (python + ":" + _sha256_files([ROOT / "requirements.txt"])
+            + (f":torch-index={index}" if index else ""))
+
+
+def torch_pin(requirements: Path) -> str:
+    """The version requirements.txt pins torch to (``torch==X``)."""
+    for line in requirements.read_text().splitlines():
+        m = re.fullmatch(r"\s*torch\s*==\s*([^\s#;]+)\s*(#.*)?", line)
+        if m:
+            return m.group(1)
+    raise BootstrapError(f"{requirements} pins no torch version (a line `torch==X`)")
+
+
+def requirement_commands(requirements: Path, index: str | None) -> list[list[str]]:
+    """The pip argument lists (after ``python -m pip``) that install ``requirements``.
+
+    With a torch index, torch is installed from it first; ``-r requirements.txt`` then finds
+    its pin satisfied. The CPU index's wheels carry a ``+cpu`` local version, named explicitly
+    so that a CUDA build installed earlier is replaced.
+    """
+    common = ["install", "--progress-bar", "off"]
+    cmds = []
+    if index:
+        version = torch_pin(requirements)
+        if index == TORCH_INDEXES["cpu"] and "+" not in version:
+            version += "+cpu"
+        cmds.append([*common, "--index-url", index, f"torch=={version}"])
+    cmds.append([*common, "-r", str(requirements)])
+    return cmds
 
 
 def package_hash() -> str:
@@ -184,15 +308,14 @@ def _locked() -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
-def _pip(*args: str) -> None:
+def _pip(*args: str, what: str) -> None:
     cmd = [str(venv_python()), "-m", "pip", "--disable-pip-version-check", "--no-input", *args]
-    log(" ".join(shlex.quote(a) for a in cmd[1:]))
-    if subprocess.run(cmd, cwd=ROOT, stdin=subprocess.DEVNULL).returncode != 0:
-        raise BootstrapError(f"pip failed: {' '.join(args)}")
+    code = run_logged(cmd, what, cwd=ROOT)
+    if code != 0:
+        raise _failure(what, code)
 
 
 def _create_venv() -> None:
-    log(f"creating {VENV} with {sys.executable} (Python {sys.version.split()[0]})")
     try:
         import ensurepip  # noqa: F401  (Debian ships it in python3-venv)
     except ModuleNotFoundError as err:
@@ -201,9 +324,10 @@ def _create_venv() -> None:
             raise BootstrapError(f"missing system package {pkg} (needed to create .venv): "
                                  f"install it with `sudo apt-get install {pkg}`") from err
     # The directory may already exist, holding only the lock file: venv fills it in.
-    if subprocess.run([sys.executable, "-m", "venv", str(VENV)],
-                      stdin=subprocess.DEVNULL).returncode != 0:
-        raise BootstrapError(f"could not create {VENV}: `{sys.executable} -m venv` failed")
+    with phase(f"creating .venv with {sys.executable} (Python {sys.version.split()[0]})"):
+        code = run_logged([sys.executable, "-m", "venv", str(VENV)], "python -m venv")
+        if code != 0:
+            raise _failure(f"`{sys.executable} -m venv {VENV}`", code)
 
 
 def install_package() -> None:
@@ -222,28 +346,35 @@ def install_package() -> None:
             elif path.is_file():
                 shutil.copy2(path, src / name)
         _pip("install", "--no-deps", "--no-build-isolation", "--force-reinstall",
-             "--progress-bar", "off", str(src))
+             "--progress-bar", "off", str(src), what="pip install of cegc_ros")
 
 
 def ensure_venv() -> None:
     """Create/refresh .venv as needed (see the module docstring)."""
     if sys.version_info < (3, 10):  # noqa: UP036  (this file must run on any python3)
         raise BootstrapError(f"Python >= 3.10 is needed, this is {sys.version.split()[0]}")
-    if not (ROOT / "requirements.txt").is_file():
-        raise BootstrapError(f"{ROOT / 'requirements.txt'} is missing: run from a full checkout")
+    requirements = ROOT / "requirements.txt"
+    if not requirements.is_file():
+        raise BootstrapError(f"{requirements} is missing: run from a full checkout")
     with _locked():
         if not venv_python().exists():
             _create_venv()
         stamp = _read_stamp()
         req = requirements_hash()
         if stamp.get("requirements") != req:
-            _pip("install", "--progress-bar", "off", "-r", str(ROOT / "requirements.txt"))
+            index = torch_index()
+            note = f", torch from {index}" if index else ""
+            with phase(f"installing requirements.txt into .venv (pip{note}; takes minutes the "
+                       f"first time)"):
+                for args in requirement_commands(requirements, index):
+                    _pip(*args, what="pip install of requirements.txt")
             stamp = {"requirements": req}
             _write_stamp(stamp)
         pkg = package_hash()
         marker = VENV / "share" / "ament_index" / "resource_index" / "packages" / "cegc_ros"
         if stamp.get("package") != pkg or not marker.is_file():  # also if uninstalled by hand
-            install_package()
+            with phase("installing cegc_ros into .venv"):
+                install_package()
             stamp["package"] = pkg
             _write_stamp(stamp)
 
@@ -269,11 +400,7 @@ def job_environment(base: dict[str, str] | None = None, *,
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
     env["CEGC_ROS_BOOTSTRAP"] = "1"
-    jemalloc = None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path()
-    if jemalloc and jemalloc not in env.get("LD_PRELOAD", "").split(":"):
-        env["LD_PRELOAD"] = ":".join(p for p in (jemalloc, env.get("LD_PRELOAD", "")) if p)
-        env.setdefault("MALLOC_CONF", "dirty_decay_ms:-1")
-    return env
+    return allocator_environment(env, None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path())
 
 
 def _exec(argv: list[str], env: dict[str, str]) -> None:
@@ -288,7 +415,11 @@ def _exec(argv: list[str], env: dict[str, str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global VERBOSE
     args = list(sys.argv[1:] if argv is None else argv)
+    while args and args[0] in ("-v", "--verbose"):
+        VERBOSE = True
+        args.pop(0)
     if not args or args[0] in ("-h", "--help", "help"):
         print(__doc__.split("\n\n")[0] + "\n\n" + USAGE)
         return 0 if args else 2
@@ -313,9 +444,10 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"export {key}={shlex.quote(env[key])}")
             return 0
         py = str(venv_python())
-        if job == "test":
+        if job in ("test", "demo"):
             log(f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']} "
                 f"ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+        if job == "test":
             # Given test paths replace the default `test` directory.
             paths = [a for a in extra if not a.startswith("-")
                      and ((ROOT / a.split("::")[0]).exists() or "::" in a)]

@@ -98,3 +98,111 @@ def test_ci_script_runs_exactly_the_readme_test_command():
     commands = [line.strip() for line in script.read_text().splitlines()
                 if line.strip() and not line.lstrip().startswith("#")]
     assert commands[-1] == "exec python3 -m cegc_ros.bootstrap test"
+
+
+# --- set-up output for people --------------------------------------------------------------
+
+
+def test_help_says_what_the_demo_does_with_generated_pairs():
+    assert "bundled" not in bootstrap.__doc__
+    assert "generate 10 synthetic" in bootstrap.USAGE
+    assert ".cache/demo/report/" in bootstrap.USAGE
+
+
+@pytest.mark.parametrize("seconds, text", [(4.24, "4.2 s"), (38.4, "38 s"),
+                                           (185.0, "3 min 05 s"), (3600, "60 min 00 s")])
+def test_format_elapsed(seconds, text):
+    assert bootstrap.format_elapsed(seconds) == text
+
+
+def test_phase_is_one_line_with_the_elapsed_time(capsys, monkeypatch):
+    monkeypatch.setattr(bootstrap, "VERBOSE", False)
+    with bootstrap.phase("installing things"):
+        pass
+    with pytest.raises(RuntimeError), bootstrap.phase("breaking things"):
+        raise RuntimeError("x")
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2
+    assert err[0].startswith("[bootstrap] installing things ... done, ") and err[0].endswith(" s")
+    assert err[1].startswith("[bootstrap] breaking things ... failed, ")
+
+
+def test_quiet_commands_write_the_log_not_the_terminal(tmp_path, monkeypatch, capfd):
+    monkeypatch.setattr(bootstrap, "VERBOSE", False)
+    monkeypatch.setattr(bootstrap, "LOG", tmp_path / "setup.log")
+    monkeypatch.setattr(bootstrap, "_log_opened", False)
+    code = bootstrap.run_logged(
+        ["sh", "-c", "echo Collecting torch; echo 'ERROR: No matching distribution' >&2; exit 3"],
+        "pip")
+    assert code == 3
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    log = (tmp_path / "setup.log").read_text()
+    assert "Collecting torch" in log and "ERROR: No matching distribution" in log
+    message = str(bootstrap._failure("pip install of requirements.txt", code))
+    assert "\n" not in message
+    assert "exit code 3: ERROR: No matching distribution" in message
+    assert str(tmp_path / "setup.log") in message and "-v" in message
+    # -v: the output reaches the terminal instead
+    monkeypatch.setattr(bootstrap, "VERBOSE", True)
+    assert bootstrap.run_logged(["sh", "-c", "echo visible"], "echo") == 0
+    assert "visible" in capfd.readouterr().out
+
+
+def test_last_error_line_prefers_the_error():
+    text = "$ pip install x\nCollecting x\nERROR: first\nsome context\nERROR: second\nbye\n"
+    assert bootstrap.last_error_line(text) == "ERROR: second"
+    assert bootstrap.last_error_line("E: Unable to locate package foo\n") == (
+        "E: Unable to locate package foo")
+    assert bootstrap.last_error_line("just output\n") == "just output"
+
+
+def test_cli_verbose_flag_goes_before_the_job():
+    proc = subprocess.run([sys.executable, "-m", "cegc_ros.bootstrap", "-v", "--help"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0 and "-v, --verbose" in proc.stdout
+
+
+# --- torch wheel index ---------------------------------------------------------------------
+
+
+def test_requirements_install_unchanged_without_a_torch_index(tmp_path):
+    req = tmp_path / "requirements.txt"
+    req.write_text("numpy==2.4.6\ntorch==2.13.0\n")
+    assert bootstrap.torch_index({}) is None
+    assert bootstrap.requirement_commands(req, None) == [
+        ["install", "--progress-bar", "off", "-r", str(req)]]
+
+
+def test_cpu_torch_index_installs_the_cpu_build_first(tmp_path):
+    req = tmp_path / "requirements.txt"
+    req.write_text("# pinned\ntorch==2.13.0   # the CPU build\nscipy==1.17.1\n")
+    index = bootstrap.torch_index({"CEGC_TORCH_INDEX": "cpu"})
+    assert index == "https://download.pytorch.org/whl/cpu"
+    cmds = bootstrap.requirement_commands(req, index)
+    assert cmds == [
+        ["install", "--progress-bar", "off", "--index-url", index, "torch==2.13.0+cpu"],
+        ["install", "--progress-bar", "off", "-r", str(req)]]
+    # Another index is used as given, with the pinned version as is.
+    url = "https://download.pytorch.org/whl/cu126"
+    assert bootstrap.requirement_commands(req, bootstrap.torch_index(
+        {"CEGC_TORCH_INDEX": url}))[0][-3:] == ["--index-url", url, "torch==2.13.0"]
+
+
+def test_bad_torch_index_and_missing_pin_are_one_line_errors(tmp_path):
+    with pytest.raises(bootstrap.BootstrapError, match="CEGC_TORCH_INDEX='gpu'"):
+        bootstrap.torch_index({"CEGC_TORCH_INDEX": "gpu"})
+    req = tmp_path / "requirements.txt"
+    req.write_text("torchvision==0.29.1\ntorch>=2\n")
+    with pytest.raises(bootstrap.BootstrapError, match="pins no torch version"):
+        bootstrap.requirement_commands(req, "https://download.pytorch.org/whl/cpu")
+
+
+def test_torch_index_is_part_of_the_requirements_stamp():
+    plain = bootstrap.requirements_hash({})
+    assert bootstrap.requirements_hash({"CEGC_TORCH_INDEX": ""}) == plain
+    assert bootstrap.requirements_hash({"CEGC_TORCH_INDEX": "cpu"}) != plain
+
+
+def test_repository_pins_torch():
+    assert bootstrap.torch_pin(REPO / "requirements.txt").count(".") == 2

@@ -1,0 +1,80 @@
+"""jemalloc for every cegc_ros process: the bootstrap's jobs and the installed console scripts.
+
+With glibc's allocator, torch's large temporaries are about twice as slow on a small VM
+(docs/performance.md), so the bootstrap preloads jemalloc into its jobs. A process started
+another way (``ros2 run cegc_ros register_node``, ``register_node`` from a sourced workspace)
+gets the same through :func:`reexec_with_allocator`, which every console script calls first:
+when jemalloc is installed and not loaded yet, the process re-executes itself once with
+``LD_PRELOAD`` set. Both paths build the variables with :func:`allocator_environment`.
+
+Neither path sets thread counts: torch and Open3D keep their defaults unless the node's
+``engine.threads`` parameter says otherwise.
+
+``CEGC_NO_JEMALLOC=1`` turns all of this off. Standard library only.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+JEMALLOC_SONAME = "libjemalloc.so.2"
+#: jemalloc keeps freed pages instead of returning them at once (torch reallocates them soon).
+MALLOC_CONF = "dirty_decay_ms:-1"
+#: Set in the re-executed process, so that a loader that drops LD_PRELOAD cannot cause a loop.
+_REEXEC_GUARD = "CEGC_ALLOCATOR_REEXEC"
+
+
+def jemalloc_path() -> str | None:
+    """Full path of libjemalloc.so.2 from the linker cache, or None when it is not installed."""
+    if ctypes.util.find_library("jemalloc") is None:
+        return None
+    try:
+        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True,
+                             check=False).stdout
+    except OSError:
+        out = ""
+    for line in out.splitlines():
+        name, _, path = line.strip().partition(" => ")
+        if name.startswith(JEMALLOC_SONAME) and Path(path).is_file():
+            return path
+    return JEMALLOC_SONAME  # the dynamic linker also resolves a bare soname
+
+
+def allocator_environment(env: dict[str, str], jemalloc: str | None) -> dict[str, str]:
+    """``env`` with jemalloc preloaded (``LD_PRELOAD``, ``MALLOC_CONF``) when ``jemalloc`` is a
+    library path and ``CEGC_NO_JEMALLOC`` is not set; a copy, ``env`` itself is not changed."""
+    env = dict(env)
+    if not jemalloc or env.get("CEGC_NO_JEMALLOC"):
+        return env
+    preload = [p for p in env.get("LD_PRELOAD", "").split(":") if p]
+    if jemalloc not in preload:
+        env["LD_PRELOAD"] = ":".join([jemalloc, *preload])
+        env.setdefault("MALLOC_CONF", MALLOC_CONF)
+    return env
+
+
+def jemalloc_loaded() -> bool:
+    """Whether this process has jemalloc mapped (Linux: /proc/self/maps)."""
+    try:
+        return "libjemalloc" in Path("/proc/self/maps").read_text()
+    except OSError:
+        return False
+
+
+def reexec_with_allocator() -> None:
+    """Re-execute this process with jemalloc preloaded, once, when it is installed and not
+    loaded yet; otherwise return. Call it first thing in a console script's main."""
+    if os.environ.get(_REEXEC_GUARD) or os.environ.get("CEGC_NO_JEMALLOC") or jemalloc_loaded():
+        return
+    env = allocator_environment(dict(os.environ), jemalloc_path())
+    if env.get("LD_PRELOAD") == os.environ.get("LD_PRELOAD"):
+        return
+    env[_REEXEC_GUARD] = "1"
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # sys.orig_argv: the interpreter's own arguments too (the script path, or -c CODE / -m MOD).
+    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], env)
