@@ -1,8 +1,10 @@
 """ament_python / pip installation of cegc_ros.
 
 Installs the Python packages ``cegc_ros`` and ``msg_adapters``, the ament index marker,
-``package.xml``, the parameter files and the shipped weights under ``share/cegc_ros`` and
-the console scripts (into ``lib/cegc_ros`` via setup.cfg, which is where ``ros2 run`` looks).
+``package.xml``, the parameter files and the shipped weights under ``share/cegc_ros`` (the only
+copy of the weights: ``cegc_ros.paths.shipped_weights`` finds them there through the ament
+index) and the console scripts (into ``lib/cegc_ros`` via setup.cfg, which is where ``ros2 run``
+looks). Every console script goes through ``cegc_ros.entry_points``, which preloads jemalloc.
 """
 
 from glob import glob
@@ -15,6 +17,8 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["cegc_ros", "cegc_ros.*", "msg_adapters", "msg_adapters.*"]),
+    # TODO(one copy of the weights): drop this line once engine.py loads them through
+    # cegc_ros.paths.shipped_weights (share/cegc_ros/weights below is then the only copy).
     package_data={PACKAGE: ["weights/*.pt"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
@@ -31,12 +35,13 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "register_node = cegc_ros.node:main",
-            "cegc-make-bag = cegc_ros.tools.make_bag:main",
-            "cegc-replay = cegc_ros.tools.replay:main",
-            "cegc-eval = cegc_ros.tools.evaluate:main",
-            "cegc-train = cegc_ros.tools.train:main",
-            "cegc-demo = cegc_ros.tools.demo:main",
+            "register_node = cegc_ros.entry_points:register_node",
+            "cegc-register = cegc_ros.entry_points:cegc_register",
+            "cegc-demo = cegc_ros.entry_points:cegc_demo",
+            "cegc-eval = cegc_ros.entry_points:cegc_eval",
+            "cegc-make-bag = cegc_ros.entry_points:cegc_make_bag",
+            "cegc-replay = cegc_ros.entry_points:cegc_replay",
+            "cegc-train = cegc_ros.entry_points:cegc_train",
         ],
     },
 )

@@ -1,0 +1,70 @@
+"""Where the files that ship with cegc_ros are: the network weights and the parameter files.
+
+There is one copy of each. An installed package (``pip install .``, ``colcon build``) has them
+under ``share/cegc_ros/`` of its prefix, found through the ament index; a source checkout has
+them in the repository (``cegc_ros/weights/``, ``params/``), next to the package.
+
+    shipped_weights("cegc_7scenes.pt")       # Path of the first network's weights
+    shipped_params("register_node.yaml")      # Path of the node's parameter file
+
+Standard library only (``ament_index_python`` is imported when it is needed), so tools that
+never load torch can use it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PACKAGE = "cegc_ros"
+#: The weights the engine's cascade loads by default: first and second network.
+WEIGHT_NAMES = ("cegc_7scenes.pt", "cegc_7scenes_noise.pt")
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+_CHECKOUT = _PACKAGE_DIR.parent          # the repository root when running from a checkout
+
+
+class ShippedFileError(FileNotFoundError):
+    """A file that should ship with the package is in none of the places it is looked for."""
+
+
+def share_dir() -> Path | None:
+    """``share/cegc_ros`` of the prefix the ament index names, or None when not installed."""
+    try:
+        from ament_index_python.packages import (
+            PackageNotFoundError,
+            get_package_share_directory,
+        )
+    except ModuleNotFoundError:   # a bare checkout without the ROS Python packages
+        return None
+    try:
+        return Path(get_package_share_directory(PACKAGE))
+    except (PackageNotFoundError, OSError):   # OSError: AMENT_PREFIX_PATH unset or empty
+        return None
+
+
+def _find(kind: str, name: str, in_checkout: Path, in_share: str) -> Path:
+    if Path(name).name != name or name in ("", ".", ".."):
+        raise ValueError(f"{kind} name must be a file name, got {name!r}")
+    # The checkout's own copy first: code run from a checkout uses that checkout's files even
+    # when an older install is on AMENT_PREFIX_PATH. An install has no copy next to the package.
+    looked = [in_checkout / name]
+    if looked[0].is_file():
+        return looked[0]
+    share = share_dir()
+    if share is not None:
+        looked.append(share / in_share / name)
+        if looked[-1].is_file():
+            return looked[-1]
+    where = " and ".join(str(p) for p in looked)
+    extra = "" if share is not None else f" (package {PACKAGE} is not in the ament index)"
+    raise ShippedFileError(f"shipped {kind} {name} not found: looked at {where}{extra}")
+
+
+def shipped_weights(name: str) -> Path:
+    """The shipped weights file ``name`` (e.g. ``cegc_7scenes.pt``); ShippedFileError if absent."""
+    return _find("weights", name, _PACKAGE_DIR / "weights", "weights")
+
+
+def shipped_params(name: str = "register_node.yaml") -> Path:
+    """The shipped parameter file ``name``; ShippedFileError if absent."""
+    return _find("parameter file", name, _CHECKOUT / "params", "params")
