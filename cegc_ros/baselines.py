@@ -1,9 +1,12 @@
-"""Open3D peers of the engine: ICP from identity, FGR on FPFH, RANSAC on FPFH (and RANSAC
-refined by the engine's own point-to-plane ICP, ``ransac+icp``: the fair peer of ``cegc+icp``).
+"""Classical peers of the engine: ICP from identity, FGR, RANSAC and SC2-PCR on Open3D FPFH, and
+RANSAC and SC2-PCR refined by the engine's own ICP (``ransac+icp``, ``sc2pcr+icp``: the fair
+peers of ``cegc+icp``).
 
 Same style as :class:`cegc_ros.engine.Registrar`: numpy clouds in (metres, own frames),
 a small result out whose ``T_target_source`` maps source points into the target frame
-(``p_t = R p_s + t``). Nothing here knows about ROS.
+(``p_t = R p_s + t``). Nothing here knows about ROS. This module reuses the engine's stages
+(:mod:`cegc_ros.bounding`, :mod:`cegc_ros.estimator`, :mod:`cegc_ros.refine`); the engine never
+imports it.
 
 Every length is scaled to the data, so one setting serves unit-sized synthetic scenes and
 metre-sized real fragments alike::
@@ -15,26 +18,39 @@ metre-sized real fragments alike::
             100k iterations / 0.999 confidence, mutual filter off (see BaselineConfig)
     FGR:    Open3D defaults (64 iterations, division factor 1.4, tuple scale 0.95, 1000
             tuples, tuple test on) with maximum correspondence distance 0.5 * voxel
+    SC2-PCR: mutual nearest neighbours in FPFH space (all nearest neighbours when fewer than
+            30 are mutual), at most 5000 (a seeded subsample; the 3DMatch setting), then
+            cegc_ros.estimator.estimate_compatibility with uniform weights, inlier threshold
+            2 * voxel (the paper: 0.10 m with 5 cm voxels) and its 3DMatch settings
     ICP:    point-to-plane from identity, distance icp_distance_ratio * extent, 50 iterations
+    +icp:   the engine's refine stage at EngineConfig/PreprocessConfig defaults: the clouds
+            bounded as the engine bounds them, then refine.icp (cegc_ros/refine.py)
     fitness = fraction of the voxelized source within 1.5 * voxel of the target after alignment
 
 The defaults were chosen on the real SUN3D pairs and on the 7Scenes protocol applied to real
 SUN3D fragments (see /work/notes/baselines_real.md for the sweep and its figures).
-Open3D runs on ``threads`` OpenMP threads (pinned with ``open3d.utility.set_max_threads``) and
-its RANSAC and FGR are seeded per call, so results repeat for a given thread count.
+
+Determinism: Open3D runs on ``threads`` OpenMP threads (``open3d.utility.set_max_threads``),
+except its RANSAC, which runs on ``ransac_threads`` (1): its threads draw from one shared seeded
+generator in whatever order the scheduler gives them and stop early at different iterations,
+so a multi-threaded RANSAC does not repeat (isl-org/Open3D#7475). RANSAC and FGR are seeded per
+call; SC2-PCR's only random step is the seeded subsample. Every method therefore returns the
+same transform for the same input, whatever the load and the thread count.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from .geometry import finite_cloud
 
-METHODS = ("icp", "fgr", "ransac", "ransac+icp")
+METHODS = ("icp", "fgr", "ransac", "ransac+icp", "sc2pcr", "sc2pcr+icp")
 
 
 class BaselineError(RuntimeError):
@@ -56,11 +72,15 @@ class BaselineConfig:
     ransac_confidence: float = 0.999
     ransac_mutual_filter: bool = False
     ransac_edge_length: float = 0.9
+    ransac_threads: int = 1          # >1 makes RANSAC's result depend on thread scheduling
     fgr_distance_factor: float = 0.5
     fgr_iterations: int = 64
     fgr_division_factor: float = 1.4
     fgr_tuple_scale: float = 0.95
     fgr_max_tuples: int = 1000
+    sc2pcr_inlier_factor: float = 2.0        # inlier threshold = factor * voxel
+    sc2pcr_max_correspondences: int = 5000
+    sc2pcr_min_mutual: int = 30              # fewer mutual matches: use every nearest neighbour
     icp_distance_ratio: float = 0.1  # of the extent: ICP starts from identity, so it needs reach
     icp_max_iterations: int = 50
     fitness_factor: float = 1.5      # fitness threshold = factor * voxel
@@ -82,7 +102,8 @@ class BaselineResult:
     fitness: float                   # in [0, 1], see module docstring
     method: str
     voxel_size: float                # metres actually used
-    timings: dict[str, float] = field(default_factory=dict)  # seconds; "features", "registration", "total"
+    # seconds: "features", "registration", "total" (+ "refine" for the +icp rows)
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def load_open3d(threads: int = 2):
@@ -93,6 +114,17 @@ def load_open3d(threads: int = 2):
     if threads > 0:
         o3d.utility.set_max_threads(int(threads))
     return o3d
+
+
+@contextlib.contextmanager
+def open3d_threads(o3d: Any, threads: int) -> Iterator[None]:
+    """Run the block on ``threads`` Open3D threads, then restore the previous count."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(int(threads))
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def scale_of(source_xyz: np.ndarray, target_xyz: np.ndarray) -> float:
@@ -206,48 +238,111 @@ def register_fgr(source_xyz: np.ndarray, target_xyz: np.ndarray,
 
 def register_ransac(source_xyz: np.ndarray, target_xyz: np.ndarray,
                     config: BaselineConfig | None = None) -> BaselineResult:
-    """Open3D RANSAC on FPFH feature matches (source (N, 3), target (M, 3)), seeded."""
+    """Open3D RANSAC on FPFH feature matches (source (N, 3), target (M, 3)): seeded and on
+    ``ransac_threads`` threads (one by default, so that it repeats)."""
     o3d, config, prep, t0, t_feat = _prepare(source_xyz, target_xyz, config, fpfh=True)
     reg = o3d.pipelines.registration
     distance = config.ransac_distance_factor * prep.voxel
-    o3d.utility.random.seed(config.seed)
-    res = reg.registration_ransac_based_on_feature_matching(
-        prep.source, prep.target, prep.features[0], prep.features[1], config.ransac_mutual_filter,
-        distance, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(config.ransac_edge_length),
-         reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence))
+    with open3d_threads(o3d, config.ransac_threads):
+        o3d.utility.random.seed(config.seed)
+        res = reg.registration_ransac_based_on_feature_matching(
+            prep.source, prep.target, prep.features[0], prep.features[1], config.ransac_mutual_filter,
+            distance, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(config.ransac_edge_length),
+             reg.CorrespondenceCheckerBasedOnDistance(distance)],
+            reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence))
     return _finish(o3d, prep, res.transformation, "ransac", config, t0, t_feat)
 
 
-def register_ransac_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
-                        config: BaselineConfig | None = None) -> BaselineResult:
-    """RANSAC on FPFH, then the ICP that ``cegc+icp`` uses (the engine's defaults: point-to-plane
-    on the input clouds, ``engine.icp_max_distance`` of twice the larger RMS radius)."""
-    from .config import EngineConfig
-    from .engine import Registrar, _fitness
-    from .geometry import normalise_pair, voxel_downsample
+def fpfh_correspondences(desc_source: np.ndarray, desc_target: np.ndarray, max_correspondences: int,
+                         min_mutual: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, D), (M, D) descriptors -> (K, 2) int64 (source, target) index pairs: the mutual
+    nearest neighbours, or every source point's nearest neighbour when fewer than ``min_mutual``
+    are mutual; at most ``max_correspondences`` (a seeded subsample), in source order."""
+    from scipy.spatial import cKDTree
+    _, st = cKDTree(desc_target).query(desc_source, k=1)                  # (N,) source -> target
+    _, ts = cKDTree(desc_source).query(desc_target, k=1)                  # (M,) target -> source
+    src = np.arange(len(desc_source))
+    mutual = ts[st] == src
+    keep = src[mutual] if mutual.sum() >= min_mutual else src
+    if len(keep) > max_correspondences:
+        keep = np.sort(rng.choice(keep, max_correspondences, replace=False))
+    return np.stack([keep, st[keep]], axis=1).astype(np.int64)
 
-    first = register_ransac(source_xyz, target_xyz, config)
+
+def register_sc2pcr(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                    config: BaselineConfig | None = None) -> BaselineResult:
+    """SC2-PCR (Chen et al., CVPR 2022) on Open3D FPFH matches (source (N, 3), target (M, 3)):
+    the engine's compatibility estimator with uniform weights (cegc_ros/estimator.py)."""
+    from .estimator import CompatibilityConfig, estimate_compatibility
+
+    o3d, config, prep, t0, t_feat = _prepare(source_xyz, target_xyz, config, fpfh=True)
+    desc = [np.asarray(f.data, np.float64).T for f in prep.features]     # (N, 33) each
+    corr = fpfh_correspondences(desc[0], desc[1], config.sc2pcr_max_correspondences,
+                                config.sc2pcr_min_mutual, np.random.default_rng(config.seed))
+    src = np.asarray(prep.source.points)[corr[:, 0]]
+    tgt = np.asarray(prep.target.points)[corr[:, 1]]
+    est = estimate_compatibility(src, tgt, np.ones(len(corr)), config.sc2pcr_inlier_factor * prep.voxel,
+                                 CompatibilityConfig())
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = est.R, est.t
+    result = _finish(o3d, prep, T, "sc2pcr", config, t0, t_feat)
+    if not est.valid:
+        result.valid, result.reason = False, est.reason
+    return result
+
+
+def engine_icp(source_xyz: np.ndarray, target_xyz: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The engine's refine stage at its defaults, started from T (4x4): both clouds bounded as
+    the engine bounds them (PreprocessConfig), then refine.icp with EngineConfig's settings."""
+    from . import bounding, refine
+    from .config import EngineConfig, PreprocessConfig
+    from .geometry import normalise_pair
+
+    pre, eng = PreprocessConfig(), EngineConfig()
+    bounded = bounding.bound_pair(source_xyz, target_xyz, pre, 3)
+    _, _, norm = normalise_pair(bounded.source, bounded.target)
+    return refine.icp(bounded.source, bounded.target, T, eng.icp_max_distance * norm.scale,
+                      eng.icp_max_iterations, eng.icp_points, pre.seed)
+
+
+def _then_engine_icp(first: BaselineResult, source_xyz: np.ndarray, target_xyz: np.ndarray,
+                     config: BaselineConfig | None) -> BaselineResult:
+    """``first`` refined by :func:`engine_icp`; fitness measured as for the other baselines."""
+    from . import refine
+    from .geometry import voxel_downsample
+
+    method = f"{first.method}+icp"
     if not first.valid:
-        return BaselineResult(first.T_target_source, False, first.reason, first.fitness, "ransac+icp",
+        return BaselineResult(first.T_target_source, False, first.reason, first.fitness, method,
                               first.voxel_size, dict(first.timings))
     t0 = time.perf_counter()
-    src = finite_cloud("source cloud", source_xyz, 3)
-    tgt = finite_cloud("target cloud", target_xyz, 3)
-    _, _, norm = normalise_pair(src, tgt)
-    T = Registrar._icp(src, tgt, first.T_target_source, norm, EngineConfig())
+    T = engine_icp(source_xyz, target_xyz, first.T_target_source)
     timings = dict(first.timings)
     timings["refine"] = time.perf_counter() - t0
     timings["total"] = timings.get("total", 0.0) + timings["refine"]
     v = first.voxel_size
-    fitness = _fitness(voxel_downsample(src, v).astype(np.float64), voxel_downsample(tgt, v).astype(np.float64),
-                       T, (config or BaselineConfig()).fitness_factor * v)
-    return BaselineResult(T, True, "", fitness, "ransac+icp", v, timings)
+    src = voxel_downsample(finite_cloud("source cloud", source_xyz, 3), v).astype(np.float64)
+    tgt = voxel_downsample(finite_cloud("target cloud", target_xyz, 3), v).astype(np.float64)
+    fitness = refine.fitness(src, tgt, T, (config or BaselineConfig()).fitness_factor * v)
+    return BaselineResult(T, True, "", fitness, method, v, timings)
+
+
+def register_ransac_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                        config: BaselineConfig | None = None) -> BaselineResult:
+    """RANSAC on FPFH, then the engine's ICP (:func:`engine_icp`)."""
+    return _then_engine_icp(register_ransac(source_xyz, target_xyz, config), source_xyz, target_xyz, config)
+
+
+def register_sc2pcr_icp(source_xyz: np.ndarray, target_xyz: np.ndarray,
+                        config: BaselineConfig | None = None) -> BaselineResult:
+    """SC2-PCR on FPFH, then the engine's ICP (:func:`engine_icp`)."""
+    return _then_engine_icp(register_sc2pcr(source_xyz, target_xyz, config), source_xyz, target_xyz, config)
 
 
 _REGISTRY: dict[str, Callable[..., BaselineResult]] = {
-    "icp": register_icp, "fgr": register_fgr, "ransac": register_ransac, "ransac+icp": register_ransac_icp}
+    "icp": register_icp, "fgr": register_fgr, "ransac": register_ransac, "ransac+icp": register_ransac_icp,
+    "sc2pcr": register_sc2pcr, "sc2pcr+icp": register_sc2pcr_icp}
 
 
 def register(method: str, source_xyz: np.ndarray, target_xyz: np.ndarray,
@@ -268,15 +363,21 @@ def describe(config: BaselineConfig | None = None) -> list[str]:
     feats = (f"{voxel}; normals r={c.normal_radius_factor:g}v/{c.normal_max_nn}nn; "
              f"FPFH r={c.fpfh_radius_factor:g}v/{c.fpfh_max_nn}nn")
     return [
-        f"icp: Open3D point-to-plane ICP from identity; {voxel}; max distance "
-        f"{c.icp_distance_ratio:g} x extent; {c.icp_max_iterations} iterations",
-        f"fgr: Open3D FGR on FPFH; {feats}; max correspondence distance {c.fgr_distance_factor:g}v; "
-        f"{c.fgr_iterations} iterations, division factor {c.fgr_division_factor:g}, tuple scale "
-        f"{c.fgr_tuple_scale:g}, {c.fgr_max_tuples} tuples, tuple test on",
-        f"ransac: Open3D RANSAC on FPFH; {feats}; distance {c.ransac_distance_factor:g}v; 3-point "
-        f"samples; edge-length {c.ransac_edge_length:g} + distance checkers; "
-        f"{c.ransac_max_iterations} iterations / {c.ransac_confidence:g} confidence; mutual filter "
-        f"{'on' if c.ransac_mutual_filter else 'off'}; seed {c.seed}",
-        "ransac+icp: the RANSAC above, then the engine's point-to-plane ICP (EngineConfig defaults)",
-        f"all: {c.threads} Open3D threads; fitness within {c.fitness_factor:g}v",
+        (f"icp: Open3D point-to-plane ICP from identity; {voxel}; max distance "
+         f"{c.icp_distance_ratio:g} x extent; {c.icp_max_iterations} iterations"),
+        (f"fgr: Open3D FGR on FPFH; {feats}; max correspondence distance {c.fgr_distance_factor:g}v; "
+         f"{c.fgr_iterations} iterations, division factor {c.fgr_division_factor:g}, tuple scale "
+         f"{c.fgr_tuple_scale:g}, {c.fgr_max_tuples} tuples, tuple test on; seed {c.seed}"),
+        (f"ransac: Open3D RANSAC on FPFH; {feats}; distance {c.ransac_distance_factor:g}v; 3-point "
+         f"samples; edge-length {c.ransac_edge_length:g} + distance checkers; "
+         f"{c.ransac_max_iterations} iterations / {c.ransac_confidence:g} confidence; mutual filter "
+         f"{'on' if c.ransac_mutual_filter else 'off'}; seed {c.seed}, {c.ransac_threads} thread(s)"),
+        (f"sc2pcr: SC2-PCR (cegc_ros.estimator.estimate_compatibility, uniform weights, 3DMatch "
+         f"settings) on FPFH matches; {feats}; mutual nearest neighbours (all nearest when fewer "
+         f"than {c.sc2pcr_min_mutual}), at most {c.sc2pcr_max_correspondences}; inlier threshold "
+         f"{c.sc2pcr_inlier_factor:g}v"),
+        ("ransac+icp, sc2pcr+icp: the method above, then the engine's point-to-plane ICP "
+         "(refine.icp at EngineConfig/PreprocessConfig defaults)"),
+        (f"all: {c.threads} Open3D threads (RANSAC: {c.ransac_threads}); fitness within "
+         f"{c.fitness_factor:g}v"),
     ]
