@@ -62,6 +62,7 @@ def make_probe(node_name: str = "register_node", namespace: str = "/",
     from visualization_msgs.msg import MarkerArray
 
     base = namespace.rstrip("/")
+    status_name = f"{base}/{node_name}: registration"   # the node's fully qualified name
 
     class Probe(Node):
         def __init__(self) -> None:
@@ -107,7 +108,7 @@ def make_probe(node_name: str = "register_node", namespace: str = "/",
             """Key-values of the newest diagnostics status of the node under test."""
             for arr in reversed(self.outputs("diagnostics")):
                 for st in arr.status:
-                    if st.name.startswith(node_name):
+                    if st.name == status_name:
                         return {kv.key: kv.value for kv in st.values}
             return {}
 

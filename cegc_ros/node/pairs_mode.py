@@ -1,0 +1,74 @@
+"""Pairs mode: source_cloud and target_cloud paired by stamp, one registration per pair.
+
+A *mode* is the small object the node holds to turn incoming clouds into registration jobs:
+it names the topics it reads (``inputs``: side -> relative topic), takes each message
+(:meth:`offer`), says what it produced (an :class:`Offer`: a job and/or clouds it gave up
+on) and hears about each result (:meth:`on_result`). The node does the rest (counting,
+the mailbox, the engine, publishing), so another mode sits beside this one without a branch
+through the node.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from cegc_ros.config import SyncConfig
+from cegc_ros.pairing import ApproximatePairer
+
+
+@dataclass
+class Job:
+    """One registration for the worker: ``source`` onto ``target`` (both PointCloud2).
+
+    The outputs carry the source's stamp and the target's frame.
+    """
+
+    source: Any
+    target: Any
+    received: float      # time.monotonic() when the job was complete (the latency's start)
+
+
+@dataclass
+class Offer:
+    """What one incoming message produced."""
+
+    job: Job | None = None
+    unpaired: list[str] = field(default_factory=list)   # one line per cloud given up on, by side
+    unpaired_sides: list[str] = field(default_factory=list)
+
+
+class PairsMode:
+    """Pairs the two inputs by header stamp within ``sync.slop`` (cegc_ros/pairing.py)."""
+
+    name = "pairs"
+    inputs = {"source": "source_cloud", "target": "target_cloud"}
+
+    def __init__(self, sync: SyncConfig) -> None:
+        self.pairer: ApproximatePairer[Any] = ApproximatePairer(sync.slop, sync.buffer_size)
+
+    def configure(self, sync: SyncConfig) -> None:
+        """Apply changed ``sync.*`` settings (from the next message on)."""
+        self.pairer.slop_s = sync.slop
+        self.pairer.buffer_size = sync.buffer_size
+
+    def offer(self, side: str, stamp_ns: int, msg: Any, now: float) -> Offer:
+        """Take one message of ``side``; a job when it completes a pair."""
+        result = self.pairer.add(side, stamp_ns, msg)  # type: ignore[arg-type]
+        offer = Offer()
+        for u in result.unpaired:
+            other = "target" if u.side == "source" else "source"
+            offer.unpaired_sides.append(u.side)
+            offer.unpaired.append(f"{u.side} cloud at stamp {u.stamp_ns / 1e9:.3f} s found no "
+                                  f"{other} cloud within sync.slop = {self.pairer.slop_s} s; "
+                                  "dropped")
+        if result.pair is not None:
+            offer.job = Job(result.pair.source.msg, result.pair.target.msg, now)
+        return offer
+
+    def on_result(self, job: Job, result: Any) -> None:
+        """Pairs are independent: nothing to remember."""
+
+    def reset(self) -> None:
+        """Forget the clouds still waiting for a partner."""
+        self.pairer.flush()

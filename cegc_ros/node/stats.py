@@ -1,0 +1,92 @@
+"""The node's counters and latency windows, and the /diagnostics key-values built from them."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+from typing import Any
+
+from cegc_ros.node.support import percentiles_ms
+
+#: Why a pair produced no pose: the keys of the ``rejected.*`` diagnostics counters.
+REJECT_REASONS = (
+    "malformed_cloud",   # missing x/y/z fields, data shorter than the layout, bad field types
+    "empty_cloud",       # no finite points at all
+    "too_few_points",    # fewer finite points than the engine's minimum
+    "missing_frame",     # empty header.frame_id: outputs would have no frame
+    "invalid_result",    # the engine judged its result invalid (reason logged)
+    "low_fitness",       # fitness < output.min_fitness
+    "engine_error",      # the engine raised, or its process died; logged with the reason
+)
+
+#: Counters shown on /diagnostics (0 until counted), in this order.
+COUNTERS = (
+    "messages_in.source", "messages_in.target", "pairs_in", "pairs_out", "pairs_dropped",
+    "pairs_rejected", "pairs_done", "unpaired.source", "unpaired.target",
+    "frame_changes.source", "frame_changes.target", "thinned_clouds", "take_errors",
+    "output_errors", "engine_restarts",
+) + tuple(f"rejected.{r}" for r in REJECT_REASONS)
+
+
+class Rejected(Exception):
+    """A pair that produces no pose; ``reason`` is one of :data:`REJECT_REASONS`."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+class NodeStats:
+    """Thread-safe counters (executor and worker both write) and the recent latencies."""
+
+    def __init__(self, window: int) -> None:
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self._latency: deque[float] = deque(maxlen=window)       # pair complete -> pose out (s)
+        self._engine_time: deque[float] = deque(maxlen=window)   # engine call (s)
+        self.last_fitness = float("nan")
+        self.busy = False
+
+    def add(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[key] += n
+
+    def count(self, key: str) -> int:
+        with self._lock:
+            return self.counts[key]
+
+    def reject(self, reason: str) -> None:
+        with self._lock:
+            self.counts["pairs_rejected"] += 1
+            self.counts[f"rejected.{reason}"] += 1
+
+    def engine_time(self, seconds: float) -> None:
+        with self._lock:
+            self._engine_time.append(seconds)
+
+    def pose_out(self, latency_s: float) -> None:
+        with self._lock:
+            self.counts["pairs_out"] += 1
+            self._latency.append(latency_s)
+
+    def set_window(self, window: int) -> None:
+        with self._lock:
+            if self._latency.maxlen != window:
+                self._latency = deque(self._latency, maxlen=window)
+                self._engine_time = deque(self._engine_time, maxlen=window)
+
+    def values(self, extra: dict[str, Any] | None = None) -> dict[str, str]:
+        """The /diagnostics key-values: every counter, latency percentiles, ``extra``."""
+        with self._lock:
+            counts = Counter(self.counts)
+            lat = list(self._latency)
+            eng = list(self._engine_time)
+        values = {k: str(counts.get(k, 0)) for k in COUNTERS}
+        for q, v in zip((50, 90, 99), percentiles_ms(lat)):
+            values[f"latency_p{q}_ms"] = f"{v:.1f}"
+        values["latency_max_ms"] = f"{max(lat) * 1e3:.1f}" if lat else "nan"
+        values["engine_p50_ms"] = f"{percentiles_ms(eng, (50,))[0]:.1f}"
+        values["last_fitness"] = f"{self.last_fitness:.4f}"
+        values["busy"] = str(self.busy).lower()
+        values.update({k: str(v) for k, v in (extra or {}).items()})
+        return values

@@ -1,0 +1,174 @@
+"""The worker: one thread between the node's mailbox and the engine.
+
+The executor leaves each job in a one-slot :class:`~cegc_ros.node.support.Mailbox` (the
+newest wins: a job still waiting when a newer one arrives is dropped and counted). The
+worker takes it, turns both clouds into points (rejecting bad ones with a reason), hands
+them to the engine (a process of its own, see :mod:`cegc_ros.node.engine_process`), checks
+the result and passes it to the node's ``publish``. Every job ends in exactly one of:
+a published pose (``pairs_out``), a rejection (``rejected.<reason>``), or nothing else:
+``pairs_done`` counts them all.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from cegc_ros.node.engine_process import EngineDied, EngineStartError
+from cegc_ros.node.pairs_mode import Job
+from cegc_ros.node.stats import NodeStats, Rejected
+from cegc_ros.node.support import Mailbox, ThrottledLog, thin
+
+
+class RegistrationWorker:
+    """Runs jobs on the engine, one at a time, on a thread of its own.
+
+    Args:
+        engine: an EngineProcess / InlineEngine (started).
+        stats: the node's counters.
+        log: throttled warnings (kind, text).
+        settings: returns the node's current sections (dict name -> config dataclass); a
+            section object is replaced whole on change, never mutated.
+        publish: called with (job, result) for a result worth publishing; raises Rejected
+            when it cannot be turned into a pose.
+        on_result: the mode's hook, after publish.
+        info: logs one line that is not a warning (engine restarts).
+    """
+
+    def __init__(self, engine: Any, stats: NodeStats, log: ThrottledLog,
+                 settings: Callable[[], dict[str, Any]], publish: Callable[[Job, Any], None],
+                 on_result: Callable[[Job, Any], None] = lambda job, result: None,
+                 info: Callable[[str], None] = print) -> None:
+        self.engine = engine
+        self.stats = stats
+        self._log = log
+        self._settings = settings
+        self._publish = publish
+        self._on_result = on_result
+        self._info = info
+        self._mailbox = Mailbox()
+        self._engine_dirty = False
+        self._last_frames: dict[str, str] = {}
+        self._thread = threading.Thread(target=self._run, name="cegc_worker", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, job: Job) -> None:
+        """Leave a job for the worker (executor thread); the one it replaces is counted."""
+        self.stats.add("pairs_in")
+        if self._mailbox.put(job) is not None:
+            self.stats.add("pairs_dropped")
+            self._log("dropped", "registration is slower than the input: the waiting pair "
+                      "was replaced by a newer one")
+
+    def engine_settings_changed(self) -> None:
+        """preprocess.* / engine.* changed: the engine gets them with the next job."""
+        self._engine_dirty = True
+
+    def stop(self, timeout: float = 10.0) -> bool:
+        """Take no more jobs; wait up to ``timeout`` s for the one in progress. True if the
+        thread ended (False: the engine is still busy; closing the engine ends it)."""
+        self._mailbox.close()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    # -- the thread -----------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            job = self._mailbox.get()
+            if job is None:
+                return
+            self.stats.busy = True
+            try:
+                self.process(job)
+            except Rejected as rej:
+                self._reject(rej.reason, str(rej))
+            except Exception as err:  # noqa: BLE001  the node must outlive any bad pair
+                self._reject("engine_error", f"{type(err).__name__}: {err}")
+            finally:
+                self.stats.add("pairs_done")
+                self.stats.busy = False
+
+    def _reject(self, reason: str, detail: str) -> None:
+        self.stats.reject(reason)
+        self._log(reason, f"pair rejected ({reason}): {detail}")
+
+    def process(self, job: Job) -> None:
+        """One job, start to end; raises Rejected with the reason it gives no pose."""
+        cfg = self._settings()
+        src_xyz = self.points("source", job.source, cfg["input"].max_points)
+        tgt_xyz = self.points("target", job.target, cfg["input"].max_points)
+        update = None
+        if self._engine_dirty:
+            self._engine_dirty = False
+            update = (cfg["preprocess"], cfg["engine"])
+        t0 = time.perf_counter()
+        try:
+            result = self.engine.register(src_xyz, tgt_xyz, update)
+        except ValueError as err:
+            raise Rejected("too_few_points", f"engine refused the pair: {err}") from err
+        except EngineDied as err:
+            if self._mailbox.closed:     # the node is shutting down and closed the engine
+                raise Rejected("engine_error", "the node stopped during the registration") \
+                    from err
+            self._restart(err)
+            raise Rejected("engine_error", str(err)) from err
+        self.stats.engine_time(time.perf_counter() - t0)
+        if not result.valid:
+            raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
+        self.stats.last_fitness = float(result.fitness)
+        min_fitness = cfg["output"].min_fitness
+        if result.fitness < min_fitness:
+            raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
+                           f"output.min_fitness {min_fitness:.3f}")
+        self._publish(job, result)
+        self._on_result(job, result)
+
+    def _restart(self, err: Exception) -> None:
+        self.stats.add("engine_restarts")
+        self._info(f"{err}; starting the engine again")
+        try:
+            self.engine.restart()
+        except EngineStartError as start_err:
+            self._log("engine_start", f"the engine did not start again: {start_err}")
+
+    def points(self, side: str, msg: Any, max_points: int) -> np.ndarray:
+        """Finite (N, 3) float32 points of one input cloud, at most ``max_points``; Rejected
+        with the reason when there are none to use."""
+        from msg_adapters.point_cloud2 import cloud_to_xyz
+
+        try:
+            frame = msg.header.frame_id
+        except AttributeError as err:
+            raise Rejected("malformed_cloud", f"{side} cloud has no header") from err
+        if not frame:
+            raise Rejected("missing_frame", f"{side} cloud has an empty header.frame_id")
+        last = self._last_frames.get(side)
+        if last is not None and last != frame:
+            self.stats.add(f"frame_changes.{side}")
+            self._log(f"frame_change.{side}", f"{side} cloud frame changed from {last!r} "
+                      f"to {frame!r}; following the new frame")
+        self._last_frames[side] = frame
+        try:
+            xyz = cloud_to_xyz(msg)  # (N, 3) float32, finite only
+        except ValueError as err:
+            raise Rejected("malformed_cloud", f"{side} cloud: {err}") from err
+        if xyz.shape[0] == 0:
+            raise Rejected("empty_cloud", f"{side} cloud has no finite points "
+                           f"({int(msg.width) * int(msg.height)} points in the message)")
+        min_points = self.engine.info.min_points
+        if xyz.shape[0] < min_points:
+            raise Rejected("too_few_points", f"{side} cloud has {xyz.shape[0]} finite "
+                           f"points, the engine needs at least {min_points}")
+        if xyz.shape[0] > max_points:
+            self.stats.add("thinned_clouds")
+            self._log("thinned", f"{side} cloud of {xyz.shape[0]} points thinned to "
+                      f"input.max_points = {max_points} by a uniform stride")
+            xyz = thin(xyz, max_points)
+        return xyz
