@@ -35,7 +35,7 @@ import numpy as np
 
 from . import bounding, estimator, matching, refine
 from .config import EngineConfig, PreprocessConfig
-from .geometry import LEGACY_FEATURES, normalise_pair, prepare_cloud
+from .geometry import LEGACY_FEATURES, prepare_pair
 
 CHECKPOINT_FORMAT = 1
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes_noise.pt"
@@ -217,11 +217,8 @@ class Registrar:
             bounded = bounding.bound_pair(source_xyz, target_xyz, pre, self.MIN_POINTS)
             src, tgt = bounded.source, bounded.target
         with clock("features"):
-            src_n, tgt_n, norm = normalise_pair(src, tgt)
-            rng = np.random.default_rng(pre.seed)
-            feats = self.model.cfg.features()
-            ps = prepare_cloud(src_n, pre.num_points, rng, support_points=pre.support_points, **feats)
-            pt = prepare_cloud(tgt_n, pre.num_points, rng, support_points=pre.support_points, **feats)
+            ps, pt, norm = prepare_pair(src, tgt, pre.num_points, pre.support_points,
+                                        np.random.default_rng(pre.seed), self.model.cfg.features())
             src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres
             tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
             inlier = eng.inlier_factor * refine.median_spacing(tgt_m)

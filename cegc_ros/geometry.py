@@ -15,6 +15,7 @@ three 11-bin histograms sums to 1. Radii are in normalised units.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -146,3 +147,15 @@ def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generato
         desc = np.zeros((len(pts), 33), np.float32)
     sel = subsample(pts, num_points, rng)
     return PreparedCloud(pts[sel], normals[sel], desc[sel], sup[sel])
+
+
+def prepare_pair(source: np.ndarray, target: np.ndarray, num_points: int, support_points: int,
+                 rng: np.random.Generator, features: dict[str, Any]
+                 ) -> tuple[PreparedCloud, PreparedCloud, Normalisation]:
+    """The engine's features stage, shared with training: (N, 3), (M, 3) metres (bounded) ->
+    both clouds normalised, normals + FPFH on ``support_points``, ``num_points`` network points.
+    ``features``: :meth:`ModelConfig.features` of the network."""
+    src_n, tgt_n, norm = normalise_pair(source, target)
+    ps = prepare_cloud(src_n, num_points, rng, support_points=support_points, **features)
+    pt = prepare_cloud(tgt_n, num_points, rng, support_points=support_points, **features)
+    return ps, pt, norm

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .cegc import CEGCOutput
+from .cegc import CandidateOutput, CEGCOutput
 
 
 @dataclass
@@ -85,6 +85,78 @@ def cegc_loss(out: CEGCOutput, src: Tensor, tgt: Tensor, R_gt: Tensor, t_gt: Ten
         "l_corr": float(l_c.detach()), "l_conf": float(l_w.detach()),
         "match_acc": float((correct * mask).sum() / mask.sum().clamp_min(1.0)),
         "inlier_frac": float(correct.mean()),
+        "overlap_acc": float(((out.src_overlap_logits > 0).float() == lab_x).float().mean()),
+    }
+    return total, parts
+
+
+@dataclass
+class CandidateLossConfig:
+    """Weights of the candidate-path loss (:func:`candidate_loss`); 0 turns a term off."""
+
+    overlap: float = 0.5         # HOCE overlap BCE (the paper's L_O)
+    inlier: float = 1.0          # BCE of each candidate pair's score against "is a true match"
+    descriptor: float = 1.0      # InfoNCE pulling true partners together in feature space
+    pose: float = 0.5            # the paper's L_R on the confidence-weighted Kabsch over candidates
+    row: float = 0.2             # BCE of w_i against "one of row i's candidates is a true match"
+    label_factor: float = 2.0    # match threshold = factor x median NN spacing of the target
+    nce_temperature: float = 0.1
+
+
+def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor, t_gt: Tensor,
+                   cfg: CandidateLossConfig) -> tuple[Tensor, dict[str, float]]:
+    """Loss of :meth:`CEGC.score_candidates`: what the engine scores is what this teaches.
+
+    - inlier classification of the candidate pairs (as PointDSC): the engine's pair confidence
+      is sigmoid(score) x sigmoid(overlap), so the score must mean "this pair is a true match";
+    - a descriptor loss: cross-entropy of each overlapping source point's cosine similarities
+      to all target points (temperature ``nce_temperature``) against its true partner, so the
+      learned candidates (nearest in feature space) contain it;
+    - HOCE overlap BCE and the pose loss of the paper, the pose from a weighted Kabsch over all
+      candidate pairs with the engine's weights (differentiable, so the weights learn to
+      favour pairs that pull the pose right).
+    All inputs in the normalised frame: src (B, N, 3), tgt (B, M, 3), R_gt (B, 3, 3), t_gt (B, 3).
+    """
+    from .svd import weighted_kabsch
+    B, N, k = out.candidates.shape
+    with torch.no_grad():
+        thr = cfg.label_factor * spacing(tgt)                            # (B,)
+        moved = transform(src, R_gt, t_gt)                               # (B, N, 3)
+        lab_x, lab_y = overlap_labels(src, tgt, R_gt, t_gt, thr)
+        cand_pts = tgt.gather(1, out.candidates.reshape(B, N * k, 1).expand(-1, -1, 3)).view(B, N, k, 3)
+        inl = ((moved.unsqueeze(2) - cand_pts).norm(dim=-1) < thr[:, None, None]).float()   # (B, N, k)
+        d = torch.cdist(moved, tgt)                                      # (B, N, M)
+        dmin, partner = d.min(dim=-1)
+        has = (dmin < thr[:, None]).float()                              # (B, N)
+    l_o = 0.5 * F.binary_cross_entropy_with_logits(out.src_overlap_logits, lab_x) \
+        + 0.5 * F.binary_cross_entropy_with_logits(out.tgt_overlap_logits, lab_y)
+    # inliers are rare on different views: balance the two classes
+    pos = inl.sum().clamp_min(1.0)
+    neg = (1 - inl).sum().clamp_min(1.0)
+    bce = F.binary_cross_entropy_with_logits(out.scores.float(), inl, reduction="none")
+    l_i = 0.5 * (bce * inl).sum() / pos + 0.5 * (bce * (1 - inl)).sum() / neg
+    sim = F.normalize(out.src_features.float(), dim=-1) @ F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
+    logp = torch.log_softmax(sim / cfg.nce_temperature, dim=-1)
+    l_d = -(logp.gather(2, partner.unsqueeze(-1)).squeeze(-1) * has).sum() / has.sum().clamp_min(1.0)
+    w = torch.sigmoid(out.scores.float()) * torch.sigmoid(out.src_overlap_logits.float())[:, :, None]
+    R, t, _ = weighted_kabsch(src.unsqueeze(2).expand(-1, -1, k, -1).reshape(B, N * k, 3),
+                              cand_pts.reshape(B, N * k, 3), w.reshape(B, N * k))
+    eye = torch.eye(3, device=R_gt.device).expand_as(R_gt)
+    l_r = ((R_gt.transpose(1, 2) @ R - eye) ** 2).sum(dim=(1, 2)).mean() + ((t_gt - t) ** 2).sum(-1).mean()
+    row_lab = inl.max(dim=-1).values
+    l_w = F.binary_cross_entropy_with_logits(out.conf_logits.float(), row_lab)
+    total = cfg.overlap * l_o + cfg.inlier * l_i + cfg.descriptor * l_d + cfg.pose * l_r + cfg.row * l_w
+    with torch.no_grad():
+        best = out.scores.argmax(dim=-1, keepdim=True)
+        hit = inl.gather(2, best).squeeze(-1)
+        top = (w.reshape(B, -1).topk(min(100, N * k), dim=-1).indices)
+        top_prec = inl.reshape(B, -1).gather(1, top).mean()
+        learned_recall = (inl.max(dim=-1).values * has).sum() / has.sum().clamp_min(1.0)
+    parts = {
+        "loss": float(total.detach()), "l_overlap": float(l_o.detach()), "l_inlier": float(l_i.detach()),
+        "l_desc": float(l_d.detach()), "l_pose": float(l_r.detach()), "l_row": float(l_w.detach()),
+        "inlier_frac": float(inl.mean()), "cand_recall": float(learned_recall),
+        "match_acc": float((hit * has).sum() / has.sum().clamp_min(1.0)), "top100_precision": float(top_prec),
         "overlap_acc": float(((out.src_overlap_logits > 0).float() == lab_x).float().mean()),
     }
     return total, parts
