@@ -13,9 +13,9 @@ from cegc_ros.tools.evaluate import Outcome
 
 
 def _summary(**kw) -> dict:
-    base = dict(rmse_r=0.17, rmse_t=0.0006, mae_r=0.109, mae_t=0.0005, error_r=0.21,
-                error_t=0.0009, recall=1.0, median_latency_ms=441.2, mean_fitness=0.71,
-                n_pairs=10, n_invalid=0, n_exception=0)
+    base = {"rmse_r": 0.17, "rmse_t": 0.0006, "mae_r": 0.109, "mae_t": 0.0005, "error_r": 0.21,
+            "error_t": 0.0009, "recall": 1.0, "median_latency_ms": 441.2, "mean_fitness": 0.71,
+            "n_pairs": 10, "n_invalid": 0, "n_exception": 0}
     base.update(kw)
     return base
 

@@ -137,8 +137,7 @@ def table_notes(recall: str, through_node: bool) -> list[str]:
     return [
         "Error(R), Error(t): mean rotation and translation error of each pose; RMSE and MAE: of",
         "  its Euler angles and translation components (as RPM-Net and DCP report them).",
-        "scene: the translation unit; the 7Scenes protocol scales each room to a largest side "
-        "of 1.",
+        "scene: the translation unit; the 7Scenes protocol scales each room to a largest side of 1.",
         f"recall: {recall}.",
         "fitness: share of the source within 1.5 voxels of the target under the method's pose",
         "  (voxel = 2% of the scene; the baselines' definition, cegc_ros/baselines.py).",
