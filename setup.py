@@ -40,6 +40,7 @@ setup(
             "cegc-demo = cegc_ros.entry_points:cegc_demo",
             "cegc-eval = cegc_ros.entry_points:cegc_eval",
             "cegc-make-bag = cegc_ros.entry_points:cegc_make_bag",
+            "cegc-make-pairs = cegc_ros.entry_points:cegc_make_pairs",
             "cegc-replay = cegc_ros.entry_points:cegc_replay",
             "cegc-train = cegc_ros.entry_points:cegc_train",
         ],

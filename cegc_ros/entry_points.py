@@ -15,6 +15,7 @@ SCRIPTS = {
     "cegc-demo": "cegc_ros.tools.demo",
     "cegc-eval": "cegc_ros.tools.evaluate",
     "cegc-make-bag": "cegc_ros.tools.make_bag",
+    "cegc-make-pairs": "cegc_ros.tools.make_pairs",
     "cegc-replay": "cegc_ros.tools.replay",
     "cegc-train": "cegc_ros.tools.train",
 }
@@ -43,6 +44,10 @@ def cegc_eval() -> int:
 
 def cegc_make_bag() -> int:
     return _run("cegc-make-bag")
+
+
+def cegc_make_pairs() -> int:
+    return _run("cegc-make-pairs")
 
 
 def cegc_replay() -> int:

@@ -1,8 +1,12 @@
 """cegc-make-bag: write synthetic registration pairs into a rosbag2 (sqlite3 or mcap).
 
     cegc-make-bag --protocol 7scenes --split test --pairs 100 --seed 0 --out bags/7scenes_test
+    cegc-make-bag --protocol views --split test --pairs 100 --out bags/views_test
 
-Pair i depends only on (protocol, split, seed, i); see cegc_ros.data.protocols.make_pair.
+Pair i depends only on (protocol, split, seed, i). 7scenes / fragments / modelnet: see
+cegc_ros.data.protocols.make_pair. views / views-lidar: different-view Kinect / LiDAR fragment
+pairs of the rich rooms (cegc_ros.data.views.iter_view_pairs), rooms SEED * 10000, +1, ... of
+the split, the same pairs as a pair cache of that split holds for those rooms.
 """
 
 from __future__ import annotations
@@ -11,7 +15,9 @@ import argparse
 import sys
 from pathlib import Path
 
-PROTOCOLS = ("7scenes", "fragments", "modelnet")
+PROTOCOLS = ("7scenes", "fragments", "modelnet", "views", "views-lidar")
+VIEW_PROTOCOLS = {"views": "kinect", "views-lidar": "lidar"}
+ROOMS_PER_SEED = 10_000
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,9 +26,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Generate synthetic registration pairs (with ground truth) into a rosbag2.")
     p.add_argument("--protocol", required=True, choices=PROTOCOLS,
                    help="7scenes (RIENet/FMR crops of a fragment), fragments (two fragments of "
-                        "a scene, metres) or modelnet (RPM-Net crops of primitive objects)")
-    p.add_argument("--split", required=True, choices=("train", "test"),
-                   help="scene/object seed range (train and test are disjoint)")
+                        "a scene, metres), modelnet (RPM-Net crops of primitive objects), "
+                        "views / views-lidar (different-view Kinect / LiDAR fragment pairs of "
+                        "the rich rooms, metres, overlap 0.1-0.9)")
+    p.add_argument("--split", required=True, choices=("train", "val", "test"),
+                   help="scene/object/room seed range (disjoint); val exists for the views "
+                        "protocols only")
     p.add_argument("--pairs", required=True, type=int, help="number of pairs (>= 1)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed, 0..999999 (default 0)")
     p.add_argument("--out", required=True, type=Path,
@@ -50,14 +59,28 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--noise applies to --protocol modelnet only")
     if not 0.0 <= args.noise <= 0.05:
         parser.error(f"--noise must be in [0, 0.05], got {args.noise}")
+    if args.split == "val" and args.protocol not in VIEW_PROTOCOLS:
+        parser.error(f"--split val exists for --protocol views / views-lidar only, not "
+                     f"{args.protocol}")
+    if args.protocol in VIEW_PROTOCOLS:
+        from cegc_ros.data.splits import num_rooms
+        max_seed = num_rooms(args.split) // ROOMS_PER_SEED - 1
+        if args.seed > max_seed:
+            parser.error(f"--seed for --protocol {args.protocol} must be in 0..{max_seed} "
+                         f"(rooms seed * {ROOMS_PER_SEED} onwards of split {args.split})")
 
     from tqdm import tqdm
 
     from cegc_ros.data.bag import BagError, write_pairs
-    from cegc_ros.data.protocols import iter_pairs
 
-    kwargs = {"noise_sigma": args.noise} if args.noise else {}
-    pairs = iter_pairs(args.protocol, args.split, args.pairs, args.seed, **kwargs)
+    if args.protocol in VIEW_PROTOCOLS:
+        from cegc_ros.data.views import iter_view_pairs
+        pairs = iter_view_pairs(args.split, args.pairs, VIEW_PROTOCOLS[args.protocol],
+                                first_room=args.seed * ROOMS_PER_SEED)
+    else:
+        from cegc_ros.data.protocols import iter_pairs
+        kwargs = {"noise_sigma": args.noise} if args.noise else {}
+        pairs = iter_pairs(args.protocol, args.split, args.pairs, args.seed, **kwargs)
     bar = tqdm(pairs, total=args.pairs, unit="pair", desc=f"{args.protocol}/{args.split}",
                disable=args.no_progress)
     try:
