@@ -68,11 +68,11 @@ def small_params(tmp_path_factory) -> Path:
 
 def test_baselines_on_bag_write_parseable_reports_and_count_failures(bag, tmp_path):
     out = tmp_path / "eval"
-    assert E.main([str(bag), "--methods", "icp,fgr,ransac", "--out", str(out), "--no-progress"]) == 0
+    assert E.main([str(bag), "--methods", "icp,fgr,ransac,sc2pcr", "--out", str(out), "--no-progress"]) == 0
 
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["n_pairs"] == N_GOOD + 1 and doc["has_ground_truth"] is True
-    assert set(doc["methods"]) == {"icp", "fgr", "ransac"}
+    assert set(doc["methods"]) == {"icp", "fgr", "ransac", "sc2pcr"}
     for m, s in doc["methods"].items():
         # The 8-point pair raised in every baseline: a failure, scored, never skipped.
         assert s["n_exception"] == 1, m
@@ -80,15 +80,15 @@ def test_baselines_on_bag_write_parseable_reports_and_count_failures(bag, tmp_pa
         assert s["recall"] <= N_GOOD / (N_GOOD + 1)
         assert s["error_r"] >= 0 and s["median_latency_ms"] > 0
     # FPFH methods solve these same-fragment crops (exact shared points).
-    assert doc["methods"]["ransac"]["n_success"] == N_GOOD
+    assert doc["methods"]["ransac"]["n_success"] == doc["methods"]["sc2pcr"]["n_success"] == N_GOOD
 
     with open(out / "pairs.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == 3 * (N_GOOD + 1)
+    assert len(rows) == 4 * (N_GOOD + 1)
     failed = [r for r in rows if r["status"] == "exception"]
-    assert len(failed) == 3 and all("points" in r["reason"] for r in failed)
-    ok = [r for r in rows if r["method"] == "ransac" and r["status"] == "ok"]
-    assert all(float(r["rot_error_deg"]) < 5 for r in ok)
+    assert len(failed) == 4 and all("points" in r["reason"] for r in failed)
+    ok = [r for r in rows if r["method"] in ("ransac", "sc2pcr") and r["status"] == "ok"]
+    assert len(ok) == 2 * N_GOOD and all(float(r["rot_error_deg"]) < 5 for r in ok)
 
     report = (out / "report.md").read_text()
     header = next(ln for ln in report.splitlines() if ln.startswith("| method |"))
@@ -96,6 +96,7 @@ def test_baselines_on_bag_write_parseable_reports_and_count_failures(bag, tmp_pa
         "method", "RMSE(R)", "RMSE(t)", "MAE(R)", "MAE(t)", "Error(R)", "Error(t)", "recall",
         "median ms", "failures"]
     assert "**" in report and "1/4" in report and "ransac: Open3D RANSAC" in report
+    assert "sc2pcr: SC2-PCR" in report and "load average" in report
     assert (out / "errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -256,7 +257,7 @@ def test_demo_runs_baselines_on_its_cached_bag_and_fails_in_one_line(tmp_path, c
     args = ["--pairs", "2", "--cache", str(tmp_path), "--methods", "fgr", "--no-progress"]
     assert demo.main(args) == 0
     out = capsys.readouterr().out
-    assert "| fgr |" in out and "recall: Error(R) < 5 deg" in out
+    assert "fgr" in out and "Error(R) < 5 deg" in out   # the table's format: test_demo_output.py
     (bag,) = tmp_path.glob("7scenes_test_seed0_2pairs_*")
     stamp = (bag / "metadata.yaml").stat().st_mtime_ns
     assert demo.main(args) == 0                      # the cached bag is reused, not rewritten
@@ -270,15 +271,20 @@ def test_demo_runs_baselines_on_its_cached_bag_and_fails_in_one_line(tmp_path, c
     assert err.startswith("cegc-demo: error:") and "none.pt" in err and "\n" not in err
 
 
-def test_suite_runs_every_readme_evaluation_into_one_summary(tmp_path, capsys):
-    real = tmp_path / "real"
-    _fake_real_dir(real)
+def test_suite_runs_every_documented_evaluation_into_one_summary(tmp_path, capsys):
+    real = tmp_path / "real" / "sun3d"
+    T = _fake_real_dir(real)
+    lidar = tmp_path / "real" / "lidar"                # a sibling one-pair folder; no bunny/
+    lidar.mkdir()
+    np.save(lidar / "source.npy", np.load(real / "fragments" / "scene" / "a.npy"))
+    np.save(lidar / "target.npy", np.load(real / "fragments" / "scene" / "b.npy"))
+    np.savetxt(lidar / "T_target_source.txt", T)
     out = tmp_path / "suite"
     assert E.main(["--suite", "--suite-pairs", "1", "--suite-fragment-pairs", "1", "--num-pairs",
                    "1", "--suite-hard-pairs", "1", "--num-points", "512", "--real-dir", str(real), "--methods", "icp",
                    "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"]) == 0
     parts = ("7scenes_test", "fragments_test", "real_pairs", "real_7scenes", "real_7scenes_resample",
-             "real_7scenes_noise")
+             "real_7scenes_noise", "lidar")
     doc = json.loads((out / "metrics.json").read_text())
     assert list(doc) == list(parts)
     assert doc["fragments_test"]["recall"] == "Error(R) < 15 deg and Error(t) < 0.3 m"
@@ -286,41 +292,83 @@ def test_suite_runs_every_readme_evaluation_into_one_summary(tmp_path, capsys):
     summary = (out / "summary.md").read_text()
     for name in parts:
         assert f"## {name}:" in summary and (out / name / "report.md").is_file()
-    assert summary.count("| icp |") == 6
+    assert summary.count("| icp |") == len(parts)
+    assert "Skipped: bunny:" in summary and "Skipped: lidar" not in summary
     assert "Gaussian noise sigma 0.01" in doc["real_7scenes_noise"]["source"]
 
+    # --parts picks a subset; an unknown part is a one-line usage error.
+    assert E.main(["--suite", "--parts", "lidar,bunny", "--real-dir", str(real), "--methods", "icp",
+                   "--out", str(tmp_path / "part"), "--no-progress"]) == 0
+    assert list(json.loads((tmp_path / "part" / "metrics.json").read_text())) == ["lidar"]
+    assert "Skipped: bunny:" in (tmp_path / "part" / "summary.md").read_text()
+    capsys.readouterr()
+    assert E.main(["--suite", "--parts", "moon", "--methods", "icp", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown suite part(s) moon" in capsys.readouterr().err
 
-def test_ablation_table_covers_the_chosen_sets(tmp_path, tiny_checkpoint, capsys):
+
+def test_ablation_table_covers_the_chosen_sets(tmp_path, tiny_checkpoint, small_params, capsys):
     from cegc_ros.tools import ablation
 
     _fake_real_dir(tmp_path / "real")
-    assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--pairs", "1", "--solvers", "robust",
+    assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--pairs", "1", "--rows",
+                          "cegc-uniform,cegc-svd", "--params", str(small_params),
                           "--sets", "real,real_noise", "--real-dir", str(tmp_path / "real")]) == 0
     out = capsys.readouterr().out.splitlines()
-    row = json.loads(out[0])
-    assert row["model"] == "tiny" and set(row) == {"model", "solver", "real", "real_noise"}
-    assert 0.0 <= row["real_noise"]["recall5"] <= 1.0 and row["real_noise"]["mean"] >= 0.0
-    assert out[-1].startswith("| tiny | robust |")
+    rows = [json.loads(line) for line in out[:2]]
+    assert [r["row"] for r in rows] == ["cegc-uniform", "cegc-svd"]
+    assert rows[0]["model"] == "tiny" and set(rows[0]) == {"model", "row", "real", "real_noise"}
+    assert 0.0 <= rows[0]["real_noise"]["recall5"] <= 1.0 and rows[0]["real_noise"]["mean"] >= 0.0
+    assert out[-1].startswith("| tiny | cegc-svd |")
     assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--sets", "real,bogus"]) == 2
     assert "unknown set(s) bogus" in capsys.readouterr().err
+    assert ablation.main(["--checkpoint", f"tiny={tiny_checkpoint}", "--rows", "ransac"]) == 2
+    assert "CEGC rows only" in capsys.readouterr().err
 
 
-def test_net_icp_is_cegc_icp_without_the_ransac_candidate(tmp_path, tiny_checkpoint, small_params):
-    """On independent scans an untrained network is wrong: cegc+icp (node defaults) returns the
-    RANSAC candidate's right pose, net+icp shows what the networks alone answer."""
-    import yaml
+def test_method_groups_and_row_overrides_are_node_parameters():
+    assert E.parse_methods("default") == ["cegc+icp", "icp", "fgr", "ransac", "ransac+icp", "sc2pcr",
+                                          "sc2pcr+icp"]
+    assert E.parse_methods("ablation,sc2pcr,cegc-svd")[-1] == "sc2pcr"
+    assert len(E.parse_methods("all")) == len(E.ALL_METHODS) == 13
+    with pytest.raises(E.EvalError, match="unknown method.*net\\+icp"):
+        E.parse_methods("cegc+icp,net+icp")
+    from cegc_ros.evaluation.methods import CEGC_ROWS, node_arguments, row_configs
 
-    T = _fake_real_dir(tmp_path)
+    pre, eng = E.engine_configs()
+    for row, overrides in CEGC_ROWS.items():
+        _, row_eng = row_configs(row, pre, eng)
+        changed = {f"engine.{k}" for k, v in vars(row_eng).items() if v != getattr(eng, k)}
+        assert changed == set(overrides), row       # exactly the row's switches, all effective
+    assert node_arguments("cegc-paper") == ["-p", "engine.candidates:=all", "-p", "engine.estimator:=svd"]
+    assert node_arguments("cegc+icp") == []
+
+
+def test_ablation_rows_change_what_the_engine_does(tmp_path, tiny_checkpoint, small_params):
+    """Each row is the same registrar under the row's settings, and the settings take effect."""
+    _fake_real_dir(tmp_path)
     pair = E.real_pairs(tmp_path)[0]
-    rng = np.random.default_rng(0)
-    source = pair.source + rng.normal(0, 0.003, pair.source.shape)   # no exact shared points
-    doc = yaml.safe_load(small_params.read_text())
-    next(iter(doc.values()))["ros__parameters"]["engine.second_checkpoint"] = str(tiny_checkpoint)
-    params = tmp_path / "params.yaml"
-    params.write_text(yaml.safe_dump(doc))
-    runners = E.make_runners(["cegc+icp", "net+icp"], checkpoint=str(tiny_checkpoint), params_file=params)
-    errors = {}
-    for m, run in runners.items():
-        T_est, valid, _, _ = run(source, pair.target)
-        errors[m] = E.metrics.rotation_error_deg(T[:3, :3], np.asarray(T_est)[:3, :3])
-    assert errors["cegc+icp"] < 1.0 and errors["net+icp"] > 10.0
+    src, tgt = pair.source, pair.target
+    rows = ["cegc+icp", "cegc", "cegc-uniform", "cegc-learned-cand", "cegc-fpfh-cand", "cegc-svd",
+            "cegc-paper"]
+    runners = E.make_runners(rows, checkpoint=str(tiny_checkpoint), params_file=small_params)
+    assert len({id(r.registrar) for r in runners.values()}) == 1          # one copy of the weights
+    results = {}
+    for name, run in runners.items():
+        T, valid, _, _ = run(src, tgt)
+        results[name] = run.last
+        assert run.registrar.engine == run.engine                      # what ran is the row's config
+        assert T.shape == (4, 4) and np.isfinite(T).all()
+    assert runners["cegc-uniform"].engine.confidence == "uniform"
+    assert runners["cegc-uniform"].engine.candidates == "fpfh"
+    assert np.all(results["cegc-uniform"].weights == 1.0)
+    assert not np.all(results["cegc+icp"].weights == 1.0)
+    assert results["cegc"].refined == "none" and results["cegc+icp"].refined == "icp"
+    assert "refine" not in results["cegc"].timings and "refine" in results["cegc+icp"].timings
+    # The paper's path keeps one partner per network source point (argmax per row): no source
+    # index repeats; the candidate paths give each point several partners.
+    paper = results["cegc-paper"].correspondences
+    assert len(np.unique(paper[:, 0])) == len(paper)
+    both = results["cegc+icp"].correspondences
+    assert len(np.unique(both[:, 0])) < len(both)
+    # Another estimator on the same matches: another pose.
+    assert results["cegc-svd"].T_target_source.tolist() != results["cegc+icp"].T_target_source.tolist()
