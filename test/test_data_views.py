@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -102,3 +104,33 @@ def test_sensor_for_room_mixes_by_fraction():
     lidar = sum(views.sensor_for_room(s, 0.1) == "lidar" for s in seeds)
     assert 150 < lidar < 250
     assert all(views.sensor_for_room(s, 0.0) == "kinect" for s in range(50))
+
+
+def test_make_bag_writes_view_pairs_that_read_back_exactly(tmp_path, monkeypatch, capsys):
+    from cegc_ros.data.bag import read_pairs
+    from cegc_ros.tools import make_bag
+
+    made: list[views.RoomPairs] = []
+    real = views.make_room_pairs
+
+    def small(seed: int, sensor: str, config: views.ViewConfig) -> views.RoomPairs:
+        made.append(real(seed, sensor, replace(SMALL, copy_pairs=config.copy_pairs)))
+        return made[-1]
+
+    monkeypatch.setattr(views, "make_room_pairs", small)
+    out = tmp_path / "views_val"
+    assert make_bag.main(["--protocol", "views", "--split", "val", "--pairs", "3", "--out",
+                          str(out), "--no-progress"]) == 0
+    got = list(read_pairs(out))
+    want = [rp.pair(k) for rp in made for k, rec in enumerate(rp.pairs) if rec.kind == "views"]
+    assert len(got) == 3
+    for g, w in zip(got, want):
+        assert np.array_equal(g.source, w.source) and np.array_equal(g.target, w.target)
+        np.testing.assert_allclose(g.T_target_source, w.T_target_source, atol=1e-9)
+        assert g.info["split"] == "val" and g.info["kind"] == "views"
+        assert g.info["overlap"] == w.info["overlap"]
+    for bad in (["--protocol", "7scenes", "--split", "val"],
+                ["--protocol", "views", "--split", "test", "--seed", "10"]):
+        with pytest.raises(SystemExit) as exc:
+            make_bag.main(bad + ["--pairs", "1", "--out", str(tmp_path / "x")])
+        assert exc.value.code == 2
