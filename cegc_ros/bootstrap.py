@@ -397,7 +397,7 @@ def job_environment(base: dict[str, str] | None = None, *,
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    if not env.get("ROS_DOMAIN_ID"):
+    if env.get("ROS_DOMAIN_ID", "0") in ("", "0"):   # 0: every ROS install's default
         env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
     env["CEGC_ROS_BOOTSTRAP"] = "1"
     return allocator_environment(env, None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path())

@@ -1,7 +1,8 @@
 """Shared helpers of the node tests: DDS isolation, cloud messages and an output probe.
 
-Importing this module pins the process to a LOCALHOST-only DDS domain of its own (derived
-from the pid) before anything calls ``rclpy.init``; child processes get the same environment
+Importing this module pins the process to a LOCALHOST-only DDS domain of its own (the one
+the caller set, e.g. the bootstrap, else derived from the pid) before anything calls
+``rclpy.init``; child processes get the same environment
 through :func:`ros_env`.
 """
 
@@ -16,7 +17,10 @@ from typing import Any
 
 import numpy as np
 
-DOMAIN_ID = 1 + os.getpid() % 100
+# The caller's domain when it chose one (the bootstrap prints the one it chose), else one from
+# the pid; domain 0, every ROS install's default, is never used.
+_GIVEN = os.environ.get("ROS_DOMAIN_ID", "")
+DOMAIN_ID = int(_GIVEN) if _GIVEN.isdigit() and _GIVEN != "0" else 1 + os.getpid() % 100
 os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_LOCALHOST_ONLY", None)

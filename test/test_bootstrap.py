@@ -38,6 +38,18 @@ def test_job_environment_keeps_dds_local_and_picks_a_domain(monkeypatch):
     # A domain the user chose is kept; outside tests their discovery range is too.
     env = bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="42"), localhost=False)
     assert env["ROS_DOMAIN_ID"] == "42" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    assert bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="0"))["ROS_DOMAIN_ID"] != "0"
+
+
+def test_tests_run_on_the_domain_the_bootstrap_prints():
+    """The bootstrap prints its ROS_DOMAIN_ID before it starts pytest; the node tests use it."""
+    code = "import sys; sys.path.insert(0, 'test'); import ros_helpers as r; print(r.DOMAIN_ID)"
+    for given, expect in (("57", "57"), ("0", None)):
+        proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                              text=True, timeout=120, env=dict(os.environ, ROS_DOMAIN_ID=given))
+        assert proc.returncode == 0, proc.stderr
+        got = proc.stdout.split()[-1]
+        assert got == expect if expect else got != "0"
 
 
 def test_jemalloc_is_preloaded_once(monkeypatch):
