@@ -14,13 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from cegc_ros import bootstrap
+from cegc_ros import bootstrap, entry_points
 
 REPO = Path(__file__).resolve().parents[1]
 PY = f"python{sys.version_info.major}.{sys.version_info.minor}"
 PARAMS = sorted(p.name for p in (REPO / "params").glob("*.yaml"))
-ENTRY_POINTS = ["register_node", "cegc-make-bag", "cegc-replay", "cegc-eval", "cegc-train",
-                "cegc-demo"]
+ENTRY_POINTS = sorted(entry_points.SCRIPTS)
+WEIGHTS = sorted(p.name for p in (REPO / "cegc_ros" / "weights").glob("*.pt"))
 
 
 def copy_sources(dest: Path) -> Path:
@@ -51,6 +51,10 @@ def assert_params_installed(share: Path) -> None:
     for name in PARAMS:
         assert (share / "params" / name).read_bytes() == (REPO / "params" / name).read_bytes()
     assert (share / "package.xml").read_bytes() == (REPO / "package.xml").read_bytes()
+    assert WEIGHTS, "the repository ships no weights"
+    for name in WEIGHTS:
+        assert (share / "weights" / name).read_bytes() == (
+            REPO / "cegc_ros" / "weights" / name).read_bytes(), name
 
 
 def share_dir_in(env: dict[str, str]) -> Path:
@@ -77,6 +81,15 @@ def test_pip_route_installs_share_files_found_by_ament_index(tmp_path):
     share = share_dir_in(env)
     assert share == prefix / "share" / "cegc_ros"
     assert_params_installed(share)
+    # The installed package (not the checkout) finds weights that are those of the checkout.
+    site = next(prefix.glob("lib/python3*/site-packages"))
+    code = ("import cegc_ros.paths as p; print(p.__file__); "
+            "print(p.shipped_weights('cegc_7scenes_noise.pt'))")
+    out = run([sys.executable, "-c", code], timeout=60, cwd="/",
+              env=dict(env, PYTHONPATH=str(site))).stdout.split()
+    assert Path(out[-2]).is_relative_to(site)
+    assert Path(out[-1]).read_bytes() == (
+        REPO / "cegc_ros" / "weights" / "cegc_7scenes_noise.pt").read_bytes()
 
 
 @pytest.mark.skipif(not os.environ.get("CEGC_ROS_BOOTSTRAP"),
