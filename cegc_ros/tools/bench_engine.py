@@ -1,0 +1,250 @@
+"""Benchmark: the engine at node defaults from 1.5k to 5M input points, per stage, with the
+peak memory, with and without jemalloc, and RANSAC and SC2-PCR on the same pairs.
+
+    python -m cegc_ros.tools.bench_engine [--sizes 1500,20000,300000,5000000] [--pairs 3]
+        [--repeats 2] [--methods cegc,ransac,sc2pcr] [--allocators jemalloc,system]
+        [--cache .cache/bench] [--json runs/bench_engine.json]
+
+Pairs (generated once into ``--cache``, float32 .npy, metres): at 1.5k points the synthetic
+7Scenes-protocol test pairs (1536-point crops, normalised units, what the paper's 7Scenes
+benchmark feeds); from 20k up synthetic test-split fragment pairs of two Kinect-like views
+(cegc_ros.data: 25-35k points each), subsampled to the size, or densified above it: each
+point repeated with Gaussian jitter (sigma 3 mm, about a third of the fragments' spacing), the
+way a denser sensor would sample the same surfaces. The ground truth is unchanged.
+
+Each (size, allocator, method) runs in a fresh subprocess, so that its peak resident memory
+(``ru_maxrss``) is its own: loaded clouds, torch, Open3D and the registrations together. One
+warm-up registration, then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
+90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
+features / registration). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
+(cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the machine's
+load; ``--json`` keeps every number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SIZES = (1500, 20000, 300000, 5000000)
+METHODS = ("cegc", "ransac", "sc2pcr")
+ALLOCATORS = ("jemalloc", "system")
+JITTER = 0.003                           # metres, densification noise
+ENGINE_STAGES = ("bound", "features", "match", "estimate", "refine", "verify")
+PEER_STAGES = ("features", "registration")
+
+
+class BenchError(RuntimeError):
+    """The benchmark cannot run as asked (bad sizes, no jemalloc, a worker failed)."""
+
+
+def _resize(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(M, 3) -> (n, 3): a seeded subsample, or each point repeated with Gaussian jitter."""
+    if n <= len(points):
+        return points[np.sort(rng.choice(len(points), n, replace=False))]
+    idx = rng.integers(0, len(points), n)
+    idx[: len(points)] = np.arange(len(points))                # every original point is kept
+    out = points[idx].astype(np.float32)
+    out[len(points):] += rng.normal(0.0, JITTER, (n - len(points), 3)).astype(np.float32)
+    return out
+
+
+def make_pairs(size: int, pairs: int, cache: Path) -> list[Path]:
+    """``pairs`` benchmark pairs of ``size`` points per cloud as .npz files in ``cache``."""
+    from cegc_ros.data.protocols import make_pair
+
+    cache.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(pairs):
+        path = cache / f"pair_{size}_{i}.npz"
+        if not path.is_file():
+            if size <= 2048:
+                p = make_pair("7scenes", "test", i)
+                src, tgt = p.source, p.target
+            else:
+                p = make_pair("fragments", "test", i)
+                rng = np.random.default_rng([size, i])
+                src, tgt = _resize(p.source, size, rng), _resize(p.target, size, rng)
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez(tmp, source=src.astype(np.float32), target=tgt.astype(np.float32),
+                     T=p.T_target_source)
+            tmp.replace(path)
+        out.append(path)
+    return out
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values, np.float64) * 1000.0
+    return {"median_ms": float(np.median(a)), "p90_ms": float(np.percentile(a, 90))}
+
+
+def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
+    """Time ``method`` on the pairs in ``files`` (this process only); peak RSS included."""
+    import resource
+
+    from cegc_ros import baselines
+    from cegc_ros.metrics import rotation_error_deg
+
+    clouds = [np.load(f) for f in files]
+    clouds = [(c["source"], c["target"], c["T"]) for c in clouds]
+    rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    if method == "cegc":
+        from cegc_ros.engine import Registrar
+        from cegc_ros.evaluation.methods import engine_configs
+        pre, eng = engine_configs()                        # the node's shipped parameter file
+        registrar = Registrar.from_checkpoint(device="cpu", preprocess=pre, engine=eng)
+
+        def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+            r = registrar.register(src, tgt)
+            return r.T_target_source, r.timings
+    else:
+        baselines.load_open3d()
+
+        def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+            r = baselines.register(method, src, tgt)
+            return r.T_target_source, r.timings
+    run(clouds[0][0], clouds[0][1])                          # warm-up: lazy imports, first kernels
+    timings: dict[str, list[float]] = {}
+    errors = []
+    for _ in range(repeats):
+        for src, tgt, T in clouds:
+            t0 = time.perf_counter()
+            T_est, stages = run(src, tgt)
+            wall = time.perf_counter() - t0
+            for k, v in stages.items():
+                timings.setdefault(k, []).append(v)
+            timings.setdefault("wall", []).append(wall)
+            errors.append(float(rotation_error_deg(T[:3, :3], T_est[:3, :3])))
+    return {
+        "method": method, "points": len(clouds[0][0]), "runs": len(timings["wall"]),
+        "stages": {k: _stats(v) for k, v in timings.items()},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "rss_after_loading_mb": rss_loaded,
+        "median_rotation_error_deg": float(np.median(errors)),
+        "jemalloc": _jemalloc_loaded(),
+    }
+
+
+def _jemalloc_loaded() -> bool:
+    from cegc_ros.allocator import jemalloc_loaded
+    return jemalloc_loaded()
+
+
+def _environment(allocator: str) -> dict[str, str]:
+    from cegc_ros.allocator import allocator_environment, jemalloc_path
+
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MALLOC_CONF")}
+    env.pop("CEGC_NO_JEMALLOC", None)
+    if allocator == "system":
+        env["CEGC_NO_JEMALLOC"] = "1"
+        return env
+    path = jemalloc_path()
+    if path is None:
+        raise BenchError("jemalloc is not installed (libjemalloc.so.2); use --allocators system")
+    return allocator_environment(env, path)
+
+
+def load_line() -> str:
+    return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def run_one(method: str, files: list[Path], repeats: int, allocator: str) -> dict[str, Any]:
+    """One worker subprocess; its JSON result plus the load around it."""
+    cmd = [sys.executable, "-m", "cegc_ros.tools.bench_engine", "--worker", method,
+           "--repeats", str(repeats), *[str(f) for f in files]]
+    before = load_line()
+    proc = subprocess.run(cmd, env=_environment(allocator), capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise BenchError(f"{method} worker on {files[0].name} failed ({proc.returncode}): {tail}")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    result.update(allocator=allocator, load_before=before, load_after=load_line())
+    if (allocator == "jemalloc") != result["jemalloc"]:
+        raise BenchError(f"{method}: asked for {allocator}, the worker had jemalloc={result['jemalloc']}")
+    return result
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    """Markdown: one row per (size, allocator, method)."""
+    head = ("| input points | allocator | method | total median ms | total p90 ms | "
+            + " | ".join(f"{s} ms" for s in ENGINE_STAGES) + " | peak RSS MB | median Error(R) deg |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in results:
+        st = r["stages"]
+        cells = []
+        for s in ENGINE_STAGES:
+            peer = {"features": "features", "estimate": "registration", "refine": "refine"}
+            key = s if r["method"] == "cegc" else peer.get(s)
+            cells.append(f"{st[key]['median_ms']:.0f} / {st[key]['p90_ms']:.0f}" if key in st else "-")
+        lines.append(f"| {r['points']:,} | {r['allocator']} | {r['method']} | "
+                     f"{st['total']['median_ms']:.0f} | {st['total']['p90_ms']:.0f} | "
+                     + " | ".join(cells) + f" | {r['peak_rss_mb']:.0f} | {r['median_rotation_error_deg']:.2f} |")
+    return "\n".join(lines)
+
+
+def _csv(text: str, cast: Any, known: tuple | None = None) -> list:
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    if known is not None and (bad := [x for x in items if x not in known]):
+        raise BenchError(f"unknown value(s) {', '.join(bad)}; choose from {', '.join(known)}")
+    try:
+        return [cast(x) for x in items]
+    except ValueError as err:
+        raise BenchError(str(err)) from err
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="bench_engine", description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    ap.add_argument("--pairs", type=int, default=3, help="distinct pairs per size (default 3)")
+    ap.add_argument("--repeats", type=int, default=2, help="timed runs of each pair (default 2)")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--allocators", default=",".join(ALLOCATORS))
+    ap.add_argument("--cache", default=".cache/bench", help="where the generated pairs are kept")
+    ap.add_argument("--json", default=None, help="write every number to this file")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("files", nargs="*", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.files, args.repeats)))
+        return 0
+    try:
+        sizes = _csv(args.sizes, int)
+        methods = _csv(args.methods, str, METHODS)
+        allocators = _csv(args.allocators, str, ALLOCATORS)
+        if not sizes or min(sizes) < 64 or args.pairs < 1 or args.repeats < 1:
+            raise BenchError("--sizes must be >= 64 points, --pairs and --repeats >= 1")
+        results = []
+        header = (f"{platform.machine()} {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
+                  f"python {platform.python_version()}; start: {load_line()}")
+        print(header, flush=True)
+        for size in sizes:
+            files = make_pairs(size, args.pairs, Path(args.cache))
+            for allocator in allocators:
+                for method in methods:
+                    r = run_one(method, files, args.repeats, allocator)
+                    print(f"{size} {allocator} {method}: total median {r['stages']['total']['median_ms']:.0f} ms, "
+                          f"peak RSS {r['peak_rss_mb']:.0f} MB ({r['load_after']})", flush=True)
+                    results.append(r)
+    except BenchError as err:
+        print(f"bench_engine: error: {err}", file=sys.stderr)
+        return 2 if "unknown" in str(err) or "must be" in str(err) else 1
+    print()
+    print(table(results))
+    print(f"\n{header}; end: {load_line()}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"machine": header, "results": results}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

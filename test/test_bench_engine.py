@@ -1,0 +1,52 @@
+"""bench_engine: the pairs it generates, one worker's numbers, and its allocator switch."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cegc_ros.tools import bench_engine as B
+
+
+def test_resize_subsamples_or_densifies_around_the_original_points():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 1, (1000, 3)).astype(np.float32)
+    small = B._resize(pts, 300, np.random.default_rng(1))
+    assert small.shape == (300, 3) and len(np.unique(small, axis=0)) == 300
+    assert np.isin(small.view("V12"), pts.view("V12")).all()              # a subset
+    big = B._resize(pts, 5000, np.random.default_rng(1))
+    assert big.shape == (5000, 3)
+    np.testing.assert_array_equal(big[:1000], pts)                        # every original kept
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(pts).query(big[1000:])
+    assert 0.5 * B.JITTER < np.median(d) < 3 * B.JITTER                    # jitter about the points
+
+
+def test_worker_reports_stage_percentiles_and_memory(tmp_path):
+    files = B.make_pairs(1500, 1, tmp_path)
+    with np.load(files[0]) as z:
+        assert z["source"].shape == (1536, 3) and z["T"].shape == (4, 4)
+    assert B.make_pairs(1500, 1, tmp_path) == files                       # cached, not regenerated
+    r = B.worker("sc2pcr", [str(f) for f in files], repeats=2)
+    assert r["runs"] == 2 and r["points"] == 1536
+    for key in ("features", "registration", "total", "wall"):
+        assert 0 < r["stages"][key]["median_ms"] <= r["stages"][key]["p90_ms"]
+    assert r["peak_rss_mb"] >= r["rss_after_loading_mb"] > 10
+    assert r["median_rotation_error_deg"] < 5.0                           # same-fragment crops
+    r.update(allocator="system")
+    head, _, row = B.table([r]).splitlines()
+    assert row.startswith("| 1,536 | system | sc2pcr |") and row.count("|") == head.count("|")
+
+
+def test_allocator_environments_and_bad_arguments(capsys, monkeypatch):
+    monkeypatch.setenv("LD_PRELOAD", "/some/lib.so")
+    env = B._environment("system")
+    assert "LD_PRELOAD" not in env and env["CEGC_NO_JEMALLOC"] == "1"
+    monkeypatch.setattr("cegc_ros.allocator.jemalloc_path", lambda: None)
+    try:
+        B._environment("jemalloc")
+    except B.BenchError as err:
+        assert "jemalloc is not installed" in str(err)
+    else:
+        raise AssertionError("jemalloc without the library must fail")
+    assert B.main(["--methods", "cegc,nope"]) == 2
+    assert "unknown value(s) nope" in capsys.readouterr().err
