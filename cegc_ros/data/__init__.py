@@ -1,1 +1,2 @@
-"""Synthetic 7Scenes-style / fragment / object pairs and rosbag2 storage."""
+"""Synthetic registration data: procedural rooms and sensors, pair protocols, the pair cache
+and rosbag2 storage (see docs/data.md)."""

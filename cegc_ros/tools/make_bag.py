@@ -6,7 +6,8 @@
 Pair i depends only on (protocol, split, seed, i). 7scenes / fragments / modelnet: see
 cegc_ros.data.protocols.make_pair. views / views-lidar: different-view Kinect / LiDAR fragment
 pairs of the rich rooms (cegc_ros.data.views.iter_view_pairs), rooms SEED * 10000, +1, ... of
-the split, the same pairs as a pair cache of that split holds for those rooms.
+the split, every room scanned with that sensor (a pair cache of the split holds the same pairs
+for its rooms of that sensor).
 """
 
 from __future__ import annotations
