@@ -7,6 +7,8 @@ No node, no torch: usable from the node, from bag tools and from tests alike.
 - :mod:`msg_adapters.pose`: ``matrix_to_pose``, ``pose_to_matrix``, ``pose_stamped``,
   ``pose_with_covariance_stamped``.
 - :mod:`msg_adapters.markers`: correspondence lines and overlap points as a MarkerArray.
+- :mod:`msg_adapters.transform`: 4x4 <-> Transform, ``transform_stamped`` for /tf.
+- :mod:`msg_adapters.nav`: ``odometry`` (nav_msgs/Odometry), ``path`` (nav_msgs/Path).
 
 Malformed input raises :class:`ValueError` with a message naming the problem.
 """
