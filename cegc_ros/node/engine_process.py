@@ -6,8 +6,10 @@ parameter services and publishes /diagnostics waited up to 1.7 s for one call on
 pair, and ~40 s on the 5M-point case of issue 15 (docs/node.md, "Responsiveness"). In a child
 process the engine can hold its own GIL as long as it likes.
 
-How: the child is started with the ``spawn`` method (a fresh interpreter: no DDS threads
-forked), imports torch and the checkpoint, warms up, and then serves requests over a pipe.
+How: the child is a fresh interpreter (``python -m cegc_ros.node.engine_process``: no DDS
+threads forked, and unlike multiprocessing's spawn it never re-imports the caller's main
+script); it imports torch and the checkpoint, warms up, and then serves requests over a
+socket pair.
 The two clouds of a request travel through one shared-memory buffer (an anonymous
 ``memfd``, passed to the child once and replaced only when a larger one is needed); the
 result comes back pickled (it is ``preprocess.num_points``-sized). A child that dies (a
@@ -23,14 +25,18 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import mmap
-import multiprocessing
 import os
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
 import types
 from collections.abc import Mapping
 from multiprocessing import reduction
+from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -155,46 +161,60 @@ class EngineProcess:
         self.env = dict(THREAD_ENV if env is None else env)
         self.info = EngineInfo()
         self.restarts = 0
-        self._ctx = multiprocessing.get_context("spawn")
         self._lock = threading.Lock()      # start / close against each other
-        self._proc: Any = None
-        self._conn: Any = None
+        self._proc: subprocess.Popen | None = None
+        self._conn: Connection | None = None
         self._buffer: mmap.mmap | None = None
         self._capacity = 0                 # points (rows of 3 float32) the buffer holds
         self._closed = False
 
     # -- life cycle -----------------------------------------------------------------------
+    def _child_env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        for key, value in self.env.items():
+            env.setdefault(key, value)         # read by torch / OpenMP when they load
+        # The child imports this very copy of cegc_ros (a checkout may shadow an install).
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+        return env
+
     def start(self) -> EngineInfo:
         """Start the child and wait until it is warmed up; EngineStartError with the reason."""
         with self._lock:
             if self._closed:
                 raise EngineStartError("the engine was closed")
-            parent, child = self._ctx.Pipe(duplex=True)
-            proc = self._ctx.Process(target=_child_main, name="cegc_engine", daemon=True,
-                                     args=(child, self.factory, *self.settings, self.env))
-            proc.start()
-            child.close()
-            self._proc, self._conn = proc, parent
+            ours, theirs = socket.socketpair()
+            try:
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "cegc_ros.node.engine_process", str(theirs.fileno())],
+                    pass_fds=(theirs.fileno(),), env=self._child_env(), stdin=subprocess.DEVNULL)
+            except OSError as err:
+                ours.close()
+                raise EngineStartError(f"cannot start the engine process: {err}") from err
+            finally:
+                theirs.close()
+            conn = Connection(ours.detach())
+            self._proc, self._conn = proc, conn
             self._buffer, self._capacity = None, 0
         try:
-            while not parent.poll(0.2):
-                if not proc.is_alive():
-                    raise EngineStartError(f"the engine process exited with code "
-                                           f"{proc.exitcode} while starting")
-            reply = parent.recv()
+            conn.send(("start", self.factory, *self.settings, list(sys.path)))
+            while not conn.poll(0.2):
+                if proc.poll() is not None and not conn.poll(0):   # gone, and said nothing
+                    raise EOFError
+            reply = conn.recv()
         except (EOFError, OSError) as err:
-            proc.join(5.0)
-            raise EngineStartError(f"the engine process exited with code {proc.exitcode} "
-                                   "while starting") from err
+            self._stop_child(0.0)
+            raise EngineStartError(f"the engine process exited with code {proc.poll()} while "
+                                   "starting") from err
         if reply[0] == "error":
-            proc.join(5.0)
+            self._stop_child(5.0)
             raise EngineStartError(f"{reply[1]}: {reply[2]}")
         self.info = reply[1]
         self.info.pid = proc.pid
         return self.info
 
     def alive(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+        return self._proc is not None and self._proc.poll() is None
 
     def restart(self) -> EngineInfo:
         """Start a new child after one died (the settings of the last request carry over)."""
@@ -216,20 +236,21 @@ class EngineProcess:
         with self._lock:
             proc, conn = self._proc, self._conn
             self._proc = self._conn = None
-        if proc is None:
+        if proc is None or conn is None:
             return
-        if timeout > 0:
+        if timeout > 0 and proc.poll() is None:
             try:
                 conn.send(("stop",))
-            except (OSError, ValueError):
+                proc.wait(timeout)
+            except (OSError, ValueError, subprocess.TimeoutExpired):
                 pass
-            proc.join(timeout)
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(2.0)
-        if proc.is_alive():
-            proc.kill()
-            proc.join(2.0)
+        for end in (proc.terminate, proc.kill):
+            if proc.poll() is None:
+                end()
+                try:
+                    proc.wait(2.0)
+                except subprocess.TimeoutExpired:
+                    pass
         conn.close()
 
     # -- work -----------------------------------------------------------------------------
@@ -244,9 +265,9 @@ class EngineProcess:
         """
         if update is not None:
             self.settings = update
-        if not self.alive():
-            raise EngineDied("EngineDied", "the engine process is not running")
         proc, conn = self._proc, self._conn
+        if proc is None or conn is None or proc.poll() is not None:
+            raise EngineDied("EngineDied", "the engine process is not running")
         n_src, n_tgt = len(source), len(target)
         try:
             self._ensure_capacity(conn, proc.pid, n_src + n_tgt)
@@ -257,8 +278,10 @@ class EngineProcess:
             conn.send(("register", n_src, n_tgt, update))
             reply = conn.recv()
         except (EOFError, OSError) as err:
-            proc.join(1.0)
-            code = proc.exitcode
+            try:
+                code = proc.wait(1.0)
+            except subprocess.TimeoutExpired:
+                code = None
             raise EngineDied("EngineDied", "the engine process ended while registering"
                              + (f" (exit code {code})" if code is not None else "")) from err
         if reply[0] == "ok":
@@ -284,15 +307,17 @@ class EngineProcess:
         self._buffer, self._capacity = buffer, capacity
 
 
-def _child_main(conn: Any, factory: str, preprocess: Any, engine: Any,
-                env: Mapping[str, str]) -> None:
+def _child_main(conn: Connection) -> None:
     """The engine process: build the registrar, warm up, then answer requests until EOF."""
     # Ctrl-C in a terminal reaches the whole process group; the node decides when the engine
-    # stops (it closes the pipe), so the child ignores SIGINT instead of dying mid-pair.
+    # stops (it closes the socket), so the child ignores SIGINT instead of dying mid-pair.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    for key, value in env.items():
-        os.environ.setdefault(key, value)          # before torch / OpenMP are imported
     try:
+        _, factory, preprocess, engine, path = conn.recv()
+    except (EOFError, OSError):
+        return
+    try:
+        sys.path[:] = [p for p in path if p not in sys.path] + sys.path   # the caller's modules
         registrar = _resolve(factory)(preprocess, engine)
         info = _warm_up(registrar)
     except BaseException as err:  # noqa: BLE001  reported to the node, which exits with it
@@ -303,7 +328,7 @@ def _child_main(conn: Any, factory: str, preprocess: Any, engine: Any,
     while True:
         try:
             msg = conn.recv()
-        except (EOFError, OSError, KeyboardInterrupt):
+        except (EOFError, OSError):
             return
         if msg[0] == "stop":
             return
@@ -326,3 +351,10 @@ def _child_main(conn: Any, factory: str, preprocess: Any, engine: Any,
             conn.send(reply)
         except (OSError, ValueError):
             return
+
+
+if __name__ == "__main__":
+    # Run the module's real copy (not this __main__ one), so that what the child pickles
+    # (EngineInfo) names cegc_ros.node.engine_process, which the node can unpickle.
+    from cegc_ros.node.engine_process import _child_main as child_main
+    child_main(Connection(int(sys.argv[1])))

@@ -118,14 +118,14 @@ def check_value(spec: ParamSpec, value: Any) -> str | None:
 def check_values(values: Mapping[str, Any]) -> dict[str, Any]:
     """Coerced values of the known parameters in ``values``; ParameterError naming each bad one.
 
-    Names that are not parameters of this node are skipped (the node warns about them).
+    Names that are not parameters of this node are skipped (the node warns about them); the
+    problems are listed in declaration order.
     """
-    specs = {s.name: s for s in param_specs()}
     out, problems = {}, []
-    for name, value in values.items():
-        spec = specs.get(name)
-        if spec is None:
+    for spec in param_specs():                   # declaration order: a stable message
+        if spec.name not in values:
             continue
+        name, value = spec.name, values[spec.name]
         problem = check_value(spec, value)
         if problem:
             problems.append(problem)

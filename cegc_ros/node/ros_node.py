@@ -121,9 +121,12 @@ class RegisterNode(Node):
                 overrides[name] = Parameter(name, value=value)
         for spec in self._specs.values():
             self.declare_parameter(spec.name, spec.default, descriptor(spec))
-        unknown = sorted(set(overrides) - set(self._parameters))
-        if unknown:
-            self.get_logger().warning(f"ignoring unknown parameters: {', '.join(unknown)}")
+        # rclpy declares its own (use_sim_time, start_type_description_service): a params file
+        # dumped from a running node names them, and they are not unknown.
+        self.unknown_parameters = sorted(set(overrides) - set(self._parameters))
+        if self.unknown_parameters:
+            self.get_logger().warning("ignoring unknown parameters: "
+                                      + ", ".join(self.unknown_parameters))
         self.cfg: dict[str, Any] = build_sections(
             {name: coerce(spec, self.get_parameter(name).value)
              for name, spec in self._specs.items()})

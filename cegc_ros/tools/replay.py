@@ -31,7 +31,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -168,6 +168,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     poses: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
     diag: dict[str, str] = {}
     answered = threading.Condition(lock)
+    status_name = f"{_topic(node_namespace, node_name)}: registration"  # the node's full name
+    node = executor = spinner = None
     try:
         node = rclpy.create_node("cegc_replay", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -183,7 +185,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
 
         def on_diag(msg: Any) -> None:
             for st in msg.status:
-                if st.name.split(":")[0] == node_name:
+                if st.name == status_name:
                     with answered:
                         diag.clear()
                         diag.update({kv.key: kv.value for kv in st.values})
@@ -193,7 +195,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = threading.Thread(target=_spin, args=(executor,), name="cegc_replay_spin",
+                                   daemon=True)
         spinner.start()
 
         end = time.monotonic() + connect_timeout
@@ -215,29 +218,31 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         bar = _progress(len(clouds) // 2, progress)
         t_start = time.monotonic()
         log0 = clouds[0][0] if clouds else 0
-        for log_ns, topic, raw in clouds:
-            stamp = cdr_header_stamp_ns(raw)
-            if not lockstep:
-                delay = t_start + (log_ns - log0) / 1e9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-            if lockstep and pending.get(stamp) is None and order:
+        try:
+            for log_ns, topic, raw in clouds:
+                stamp = cdr_header_stamp_ns(raw)
+                if not lockstep:
+                    delay = t_start + (log_ns - log0) / 1e9 / rate - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                if lockstep and pending.get(stamp) is None and order:
+                    _wait_answer(answered, poses, diag, order[-1],
+                                 None if base is None else base + len(order), pair_timeout)
+                pubs[topic].publish(raw)
+                seen = pending.setdefault(stamp, set())
+                seen.add(topic)
+                if len(seen) == 2:
+                    published[stamp] = time.monotonic()
+                    order.append(stamp)
+                    bar.update(1)
+            if lockstep and order:
                 _wait_answer(answered, poses, diag, order[-1],
                              None if base is None else base + len(order), pair_timeout)
-            pubs[topic].publish(raw)
-            seen = pending.setdefault(stamp, set())
-            seen.add(topic)
-            if len(seen) == 2:
-                published[stamp] = time.monotonic()
-                order.append(stamp)
-                bar.update(1)
-        if lockstep and order:
-            _wait_answer(answered, poses, diag, order[-1],
-                         None if base is None else base + len(order), pair_timeout)
-        if not lockstep:
-            with answered:
-                answered.wait_for(lambda: all(s in poses for s in order), timeout)
-        bar.close()
+            if not lockstep:
+                with answered:
+                    answered.wait_for(lambda: all(s in poses for s in order), timeout)
+        finally:
+            bar.close()
         wall = time.monotonic() - t_start
         records = []
         with lock:
@@ -250,11 +255,27 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                     T_gt=None if T_gt is None else T_gt.tolist(),
                     latency_s=None if got is None else got[1] - published[stamp]))
             last_diag = dict(diag)
-        executor.shutdown()
-        node.destroy_node()
         return ReplayResult(records, last_diag, wall)
     finally:
+        # Always, also after an error: a spin thread still inside rcl when the interpreter
+        # exits aborts the process ("terminate called without an active exception").
+        if executor is not None:
+            executor.shutdown(timeout_sec=2.0)
+        if spinner is not None:
+            spinner.join(5.0)
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _spin(executor: Any) -> None:
+    """The replay's spin thread: ends quietly when the executor or its context shuts down."""
+    from rclpy.executors import ExternalShutdownException
+
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
 
 
 def _wait_answer(cond: threading.Condition, poses: dict[int, Any], diag: dict[str, str],
@@ -315,17 +336,36 @@ def summary(result: ReplayResult) -> dict[str, Any]:
     return out
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a usage error on one line (and exits 2), not usage + error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``cegc-replay``."""
-    ap = argparse.ArgumentParser(prog="cegc-replay", description=__doc__.split("\n\n")[0])
+    """Entry point of ``cegc-replay``: 0 on success, 1 with one line on stderr when the bag or
+    the node is the problem, 2 for a usage error."""
+    ap = OneLineParser(prog="cegc-replay", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag", help="rosbag2 pair bag (directory)")
-    ap.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
+    ap.add_argument("--rate", type=_positive, default=1.0,
+                    help="playback speed factor (default 1)")
     ap.add_argument("--lockstep", action="store_true",
                     help="publish each pair only after the node answered the previous one")
     ap.add_argument("--out", help="write records here (.json or .csv)")
-    ap.add_argument("--timeout", type=float, default=10.0,
+    ap.add_argument("--timeout", type=_positive, default=10.0,
                     help="seconds to wait for outstanding poses after the last pair")
-    ap.add_argument("--connect-timeout", type=float, default=30.0,
+    ap.add_argument("--connect-timeout", type=_positive, default=30.0,
                     help="seconds to wait for the node's topics")
     ap.add_argument("--node-name", default="register_node")
     ap.add_argument("--node-namespace", default="/")
@@ -341,13 +381,20 @@ def main(argv: list[str] | None = None) -> int:
                             node_namespace=args.node_namespace, source_topic=args.source_topic,
                             target_topic=args.target_topic, pose_topic=args.pose_topic,
                             progress=sys.stderr.isatty())
-    except (BagError, ReplayError, ValueError) as err:
-        print(f"cegc-replay: {err}", file=sys.stderr)
+        info = summary(result)
+        if args.out:
+            write_records(result, args.out, {"bag": str(args.bag), "rate": args.rate,
+                                             "lockstep": args.lockstep, "summary": info})
+    except (BagError, ReplayError, ValueError, OSError) as err:
+        print(f"cegc-replay: {' '.join(str(err).split())}", file=sys.stderr)
         return 1
-    info = summary(result)
-    if args.out:
-        write_records(result, args.out, {"bag": str(args.bag), "rate": args.rate,
-                                         "lockstep": args.lockstep, "summary": info})
+    except KeyboardInterrupt:
+        print("cegc-replay: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001  one line, never a traceback (e.g. rclpy errors)
+        print(f"cegc-replay: {type(err).__name__}: {' '.join(str(err).split())}",
+              file=sys.stderr)
+        return 1
     print(json.dumps(info))
     return 0
 
