@@ -238,6 +238,10 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
             if lockstep and order:
                 _wait_answer(answered, poses, diag, order[-1],
                              None if base is None else base + len(order), pair_timeout)
+                if base is not None:    # diagnostics that count every pair of this replay
+                    with answered:
+                        answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
+                                          >= base + len(order), timeout)
             if not lockstep:
                 with answered:
                     answered.wait_for(lambda: all(s in poses for s in order), timeout)

@@ -1,0 +1,178 @@
+"""register_node under a busy engine, a crashing engine, huge clouds and several instances.
+
+In-process nodes over real DDS with stand-in engines (fake_engines.py) in the node's engine
+process, started exactly as the real engine is. No wall-clock budgets: every wait is a
+generous bound on a hang, and the assertions are about order and counts.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import ros_helpers as rh
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.parameter import Parameter  # noqa: E402
+
+from cegc_ros.node.engine_process import EngineProcess  # noqa: E402
+
+SEC = 10**9
+
+
+def _pts(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-1, 1, (n, 3)).astype(np.float32)
+
+
+class _Stack:
+    """Nodes and probes in one context, spun by one executor; torn down in ``close``."""
+
+    def __init__(self) -> None:
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
+        self.nodes: list = []
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def node(self, factory: str, namespace: str = "/", **params):
+        from cegc_ros.node import node_class
+
+        overrides = [Parameter("input.reliable", value=True),
+                     Parameter("input.queue_depth", value=100),
+                     Parameter("diagnostics.period", value=0.2)]
+        overrides += [Parameter(k.replace("__", "."), value=v) for k, v in params.items()]
+        node = node_class()(engine_factory=lambda p, e: EngineProcess(p, e, factory=factory),
+                            namespace=namespace, context=self.context,
+                            parameter_overrides=overrides)
+        probe = rh.make_probe(namespace=namespace, context=self.context)
+        for n in (node, probe):
+            self.nodes.append(n)
+            self.executor.add_node(n)
+        assert rh.wait_for(probe.connected, 30.0), "probe never matched the node"
+        return node, probe
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(5.0)
+        for n in self.nodes:
+            n.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def stack():
+    s = _Stack()
+    yield s
+    s.close()
+
+
+def test_parameters_and_diagnostics_answer_while_the_engine_holds_its_gil(stack):
+    """The engine stand-in holds its GIL in one C call per pair (like a long Open3D call):
+    with the engine in the node's process nothing else in the node would run meanwhile."""
+    from rcl_interfaces.srv import DescribeParameters
+
+    node, probe = stack.node("fake_engines:gil_hog", "/busy",
+                             engine__checkpoint=str(10**8))  # ~1 s idle, several s loaded
+    client = stack.nodes[-1].create_client(DescribeParameters,
+                                           "/busy/register_node/describe_parameters")
+    assert client.wait_for_service(30.0)
+    t = 1000 * SEC
+    probe.send(rh.cloud(_pts(100), "a", t), rh.cloud(_pts(100), "b", t))
+    assert rh.wait_for(lambda: node.stats.busy, 30.0, 0.002)
+    diag_before = len(probe.outputs("diagnostics"))
+    answers = []
+    for _ in range(3):
+        fut = client.call_async(DescribeParameters.Request(names=["sync.slop"]))
+        assert rh.wait_for(fut.done, 60.0)
+        answers.append((fut.result().descriptors[0].name, node.stats.count("pairs_done")))
+    assert rh.wait_for(lambda: len(probe.outputs("diagnostics")) >= diag_before + 2
+                       or node.stats.count("pairs_done") > 0, 60.0)
+    # Both happened while the engine was still working on the pair.
+    busy_diags = [a for a in probe.outputs("diagnostics")[diag_before:]
+                  if any(kv.key == "busy" and kv.value == "true" for kv in a.status[0].values)]
+    done_at_answers = [d for _, d in answers]
+    assert [n for n, _ in answers] == ["sync.slop"] * 3
+    assert done_at_answers == [0, 0, 0]
+    assert len(busy_diags) >= 2
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 120.0)
+
+
+def test_a_crashed_engine_is_counted_restarted_and_the_node_goes_on(stack):
+    node, probe = stack.node("fake_engines:echo", "/crash")
+    pid = node.engine.info.pid
+    t = 2000 * SEC
+    probe.send(rh.cloud(_pts(77), "a", t), rh.cloud(_pts(100), "b", t))   # SIGKILLs itself
+    assert rh.wait_for(lambda: node.stats.count("pairs_done") == 1, 60.0)
+    values = node.diagnostics_values()
+    assert values["rejected.engine_error"] == "1" and values["engine_restarts"] == "1"
+    assert node.engine.info.pid != pid and node.engine.alive()
+    t += SEC
+    probe.send(rh.cloud(_pts(100), "a", t), rh.cloud(_pts(100), "b", t))
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 60.0)
+    assert node.diagnostics_values()["engine_pid"] == str(node.engine.info.pid)
+
+
+def test_engine_errors_and_refusals_are_counted_by_reason(stack):
+    node, probe = stack.node("fake_engines:echo", "/errors")
+    t = 3000 * SEC
+    for n in (50, 51):      # the stand-in refuses 50 points (ValueError), fails on 51
+        done = node.stats.count("pairs_done")
+        probe.send(rh.cloud(_pts(n), "a", t), rh.cloud(_pts(100), "b", t))
+        assert rh.wait_for(lambda: node.stats.count("pairs_done") > done, 60.0)
+        t += SEC
+    values = node.diagnostics_values()
+    assert (values["rejected.too_few_points"], values["rejected.engine_error"]) == ("1", "1")
+    assert values["engine_restarts"] == "0"
+
+
+def test_huge_clouds_are_thinned_counted_and_logged_once(stack):
+    node, probe = stack.node("fake_engines:echo", "/huge", input__max_points=5000,
+                             diagnostics__log_throttle=3600.0)
+    logged: list[str] = []
+    emit = node._log._emit
+    node._log._emit = lambda text: (logged.append(text), emit(text))
+    sizes: list[tuple[int, int]] = []
+    register = node.engine.register
+
+    def spy(src, tgt, update=None):
+        sizes.append((len(src), len(tgt)))
+        return register(src, tgt, update)
+
+    node.engine.register = spy
+    big = _pts(300_000, 1)
+    t = 4000 * SEC
+    for k in range(3):
+        done = node.stats.count("pairs_done")
+        probe.send(rh.cloud(big, "a", t + k * SEC), rh.cloud(_pts(100), "b", t + k * SEC))
+        assert rh.wait_for(lambda: node.stats.count("pairs_done") > done, 60.0)
+    assert node.stats.count("thinned_clouds") == 3 and node.stats.count("pairs_out") == 3
+    assert sizes == [(5000, 100)] * 3          # stride 60: rows 0, 60, ..., 299940
+    thinned = [ln for ln in logged if "thinned" in ln]
+    assert thinned == ["source cloud of 300000 points thinned to input.max_points = 5000 by a "
+                       "uniform stride"]
+
+
+def test_namespaced_nodes_have_their_own_status_and_replay_finds_its_node(stack, tmp_path):
+    from cegc_ros.data.bag import write_pairs
+    from cegc_ros.data.protocols import make_pairs
+    from cegc_ros.tools.replay import replay_bag
+
+    node1, probe1 = stack.node("fake_engines:echo", "/robot1")
+    node2, probe2 = stack.node("fake_engines:echo", "/robot2")
+    assert rh.wait_for(lambda: probe1.diagnostics() and probe2.diagnostics(), 30.0)
+    names = {st.name for arr in probe1.outputs("diagnostics") for st in arr.status}
+    assert {"/robot1/register_node: registration",
+            "/robot2/register_node: registration"} <= names
+    bag = tmp_path / "pairs"
+    write_pairs(bag, make_pairs("7scenes", "test", 3))
+    res = replay_bag(bag, lockstep=True, node_namespace="/robot1", timeout=30.0,
+                     connect_timeout=30.0)
+    assert [r.T_est is not None for r in res.records] == [True] * 3
+    # The diagnostics the replay followed are robot1's: three pairs done there, none on robot2.
+    assert res.diagnostics["pairs_done"] == "3"
+    assert node1.stats.count("pairs_done") == 3 and node2.stats.count("pairs_done") == 0
