@@ -180,11 +180,21 @@ class SequentialConfig:
     voxel_size: float = field(default=0.05, metadata=_meta(
         "Voxel grid (metres) of the clouds that tracking ICP and the keyframe checks run on "
         "(global registration gets the raw clouds and uses preprocess.*).", 1e-4, 10.0))
+    max_range: float = field(default=0.0, metadata=_meta(
+        "Points farther than this (metres) from the sensor (the cloud frame's origin) are left "
+        "out of tracking and the keyframe checks; 0 keeps all. Depth noise grows with range "
+        "(Kinect-like: quadratically), and far noisy points bias ICP.", 0.0, 10000.0))
     icp_max_distance: float = field(default=0.2, metadata=_meta(
         "Correspondence distance (metres) of the tracking ICP: how far the constant-velocity "
         "prediction may be off and still be pulled in.", 1e-4, 100.0))
     icp_max_iterations: int = field(default=30, metadata=_meta(
         "Iterations of the tracking ICP.", 1, 1000))
+    icp_prior: float = field(default=0.01, metadata=_meta(
+        "Weight of the constant-velocity prediction in the tracking ICP, per point (translation "
+        "in metres, rotation as angle x the cloud's RMS radius): directions the geometry "
+        "constrains less than this (a wall and the floor leave one free) stay near the "
+        "prediction instead of sliding on depth noise; 0 is plain point-to-plane ICP.",
+        0.0, 1.0))
     inlier_distance: float = field(default=0.05, metadata=_meta(
         "Distance (metres) within which an aligned point counts as on the keyframe, for "
         "fitness, overlap and the covariance.", 1e-5, 100.0))

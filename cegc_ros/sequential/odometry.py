@@ -1,0 +1,333 @@
+"""Keyframe odometry: one stream of clouds in, the pose of each cloud in the first one's frame out.
+
+ROS-free; the node holds one :class:`KeyframeOdometry` and converts its :class:`FrameResult`
+to messages. Each cloud fed is registered against the current keyframe (the first cloud is the
+first keyframe):
+
+1. predict: constant velocity from the last two accepted clouds, over the stamp gap (from
+   rest after a global recovery);
+2. track: point-to-plane ICP from the prediction on the voxelized clouds, with the prediction
+   as a weak prior (:mod:`cegc_ros.sequential.icp`), accepted when its fitness reaches
+   ``min_fitness``; when it does not, once more without the prior, from where it stopped;
+3. recover (only when tracking is not accepted: the first frames' motion, fast motion, dropped
+   frames, a kidnapped sensor): the injected global registration (``Registrar.register`` or any
+   callable with its signature), refined and checked by the same ICP and fitness test;
+4. chain: ``T_odom_cloud = T_odom_keyframe @ T_keyframe_cloud``, covariance propagated along the
+   keyframe chain (:func:`cegc_ros.sequential.se3.compose_covariance`);
+5. keyframe: the cloud becomes the keyframe when fitness or overlap falls below
+   ``keyframe_min_overlap`` or it moved more than ``keyframe_max_translation`` /
+   ``keyframe_max_rotation`` from the keyframe.
+
+A cloud that neither step 2 nor step 3 can register is rejected: counted, reported, and the
+state (keyframe, pose, velocity, path) is left as it was, so the next cloud is tried against the
+same keyframe. Not thread-safe: feed it from one thread.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..config import SequentialConfig
+from ..geometry import finite_cloud
+from . import icp as icp_stage
+from .se3 import compose_covariance, rotation_angle_deg, scale_motion
+
+#: Fewest finite points, and voxels after the grid, a cloud needs.
+MIN_POINTS = 16
+
+#: ``global_registration(source_xyz (N, 3), target_xyz (M, 3)) -> result`` with the fields of
+#: :class:`cegc_ros.engine.RegistrationResult` that are read here: ``T_target_source`` (4, 4),
+#: ``valid`` (bool), ``reason`` (str). It may raise ValueError for unusable clouds.
+GlobalRegistration = Callable[[np.ndarray, np.ndarray], Any]
+
+
+@dataclass
+class FrameResult:
+    """What :meth:`KeyframeOdometry.feed` made of one cloud.
+
+    accepted: the cloud was registered and the odometry advanced.
+    method: "first" (the first cloud: the odometry frame), "icp" (tracked from the prediction),
+        "global" (recovered by global registration) or "none" (rejected).
+    T_odom_cloud: (4, 4) pose of the cloud in the odometry frame (the first cloud's), None when
+        rejected; covariance: its (6, 6), ROS order x y z roll pitch yaw.
+    T_keyframe_cloud: (4, 4) the cloud against the keyframe it was registered to (stamp
+        ``keyframe_stamp_ns``); keyframe_covariance: its (6, 6). None when rejected.
+    new_keyframe: the cloud is now the current keyframe.
+    fitness, overlap: of the accepted (or last tried) registration, 0 when none ran.
+    reason: why rejected, or why global registration or a new keyframe was needed ("" if none).
+    registration: the global registration's own result when it ran (masked clouds, markers).
+    timings: seconds: "prepare", "icp", "global" (when run), "total".
+    """
+
+    stamp_ns: int
+    accepted: bool
+    method: str
+    T_odom_cloud: np.ndarray | None
+    covariance: np.ndarray | None
+    T_keyframe_cloud: np.ndarray | None
+    keyframe_covariance: np.ndarray | None
+    keyframe_stamp_ns: int
+    new_keyframe: bool
+    fitness: float = 0.0
+    overlap: float = 0.0
+    reason: str = ""
+    registration: Any = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class OdometryStats:
+    """Counters since construction or :meth:`KeyframeOdometry.reset` (for /diagnostics).
+
+    frames: clouds fed with usable input; keyframes: keyframes taken (the first cloud is one);
+    tracked: accepted by ICP from the prediction; recoveries: accepted by global registration;
+    rejected: registered by neither (skipped); invalid: clouds refused as unusable input.
+    """
+
+    frames: int = 0
+    keyframes: int = 0
+    tracked: int = 0
+    recoveries: int = 0
+    rejected: int = 0
+    invalid: int = 0
+
+
+@dataclass
+class Keyframe:
+    """The cloud the next ones are registered against."""
+
+    stamp_ns: int
+    T_odom_keyframe: np.ndarray          # (4, 4)
+    covariance: np.ndarray               # (6, 6) of T_odom_keyframe
+    cloud: np.ndarray                    # (N, 3) float32 finite raw points, for global registration
+    prepared: icp_stage.PreparedCloud    # voxelized, for ICP
+
+
+@dataclass
+class _Registration:
+    """One accepted-or-not attempt against the keyframe (internal)."""
+
+    method: str
+    icp: icp_stage.IcpResult | None
+    registration: Any = None
+    reason: str = ""
+
+
+class KeyframeOdometry:
+    """Keyframe odometry over one cloud stream; see the module docstring for the steps.
+
+    Args:
+        config: the ``sequential.*`` settings.
+        global_registration: ``callable(source_xyz, target_xyz) -> RegistrationResult``, e.g.
+            ``Registrar.from_checkpoint().register``; None disables recovery (a cloud ICP
+            cannot track is rejected).
+    """
+
+    def __init__(self, config: SequentialConfig | None = None,
+                 global_registration: GlobalRegistration | None = None) -> None:
+        self.config = copy.deepcopy(config) if config is not None else SequentialConfig()
+        self.global_registration = global_registration
+        self.reset()
+
+    # ----------------------------------------------------------------------------------------
+    # State
+    # ----------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget everything: the next cloud starts a new odometry frame."""
+        self.stats = OdometryStats()
+        self.keyframe: Keyframe | None = None
+        self._accepted: deque[tuple[int, np.ndarray]] = deque(maxlen=2)   # (stamp, T_odom_cloud)
+        self._last_stamp: int | None = None
+        self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=self.config.path_length)
+
+    def update(self, config: SequentialConfig) -> None:
+        """New settings, from the next cloud on; the keyframe and the path are kept."""
+        old = self.config
+        self.config = copy.deepcopy(config)
+        if config.path_length != old.path_length:
+            self._path = deque(self._path, maxlen=config.path_length)
+        if self.keyframe is not None and (config.voxel_size, config.max_range) != (
+                old.voxel_size, old.max_range):
+            self.keyframe.prepared = icp_stage.prepare_cloud(
+                self._in_range(self.keyframe.cloud), config.voxel_size)
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """(4, 4) T_odom_cloud of the last accepted cloud, None before the first."""
+        return self._accepted[-1][1].copy() if self._accepted else None
+
+    @property
+    def path(self) -> list[tuple[int, np.ndarray]]:
+        """(stamp_ns, T_odom_cloud (4, 4)) of the accepted clouds, oldest first; at most
+        ``path_length``."""
+        return [(s, T.copy()) for s, T in self._path]
+
+    # ----------------------------------------------------------------------------------------
+    # One cloud
+    # ----------------------------------------------------------------------------------------
+
+    def feed(self, stamp_ns: int, cloud: np.ndarray) -> FrameResult:
+        """Register one cloud (N, 3) metres, stamped ``stamp_ns``, into the odometry.
+
+        Raises:
+            ValueError: unusable input (shape, fewer than MIN_POINTS finite points or voxels, a
+                stamp not after the previous cloud's); counted in ``stats.invalid``, state kept.
+        """
+        t0 = time.perf_counter()
+        cfg = self.config
+        try:
+            stamp_ns = int(stamp_ns)
+            if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+                raise ValueError(f"cloud stamp {stamp_ns} ns is not after the previous cloud's "
+                                 f"({self._last_stamp} ns); reset() to start over")
+            points = finite_cloud("cloud", cloud, MIN_POINTS).astype(np.float32)
+            prepared = icp_stage.prepare_cloud(self._in_range(points), cfg.voxel_size)
+            if len(prepared) < MIN_POINTS:
+                raise ValueError(f"cloud has {len(prepared)} voxels of {cfg.voxel_size} m, at "
+                                 f"least {MIN_POINTS} are needed")
+        except ValueError:
+            self.stats.invalid += 1
+            raise
+        timings = {"prepare": time.perf_counter() - t0}
+        self._last_stamp = stamp_ns
+        self.stats.frames += 1
+
+        if self.keyframe is None:
+            T0, cov0 = np.eye(4), np.zeros((6, 6))
+            self._take_keyframe(stamp_ns, T0, cov0, points, prepared)
+            self._advance(stamp_ns, T0)
+            timings["total"] = time.perf_counter() - t0
+            return FrameResult(stamp_ns, True, "first", T0.copy(), cov0.copy(), np.eye(4),
+                               np.zeros((6, 6)), stamp_ns, True, 1.0, 1.0, "first cloud",
+                               timings=timings)
+
+        kf = self.keyframe
+        attempt = self._register(stamp_ns, points, prepared, timings)
+        if attempt.method == "none":
+            self.stats.rejected += 1
+            timings["total"] = time.perf_counter() - t0
+            fit = attempt.icp.fitness if attempt.icp is not None else 0.0
+            ovl = attempt.icp.overlap if attempt.icp is not None else 0.0
+            return FrameResult(stamp_ns, False, "none", None, None, None, None, kf.stamp_ns,
+                               False, fit, ovl, attempt.reason, attempt.registration, timings)
+
+        res = attempt.icp
+        assert res is not None                  # accepted attempts always carry their ICP
+        if attempt.method == "icp":
+            self.stats.tracked += 1
+        else:
+            self.stats.recoveries += 1
+        T_kf_cloud = res.T_target_source
+        T_odom_cloud = kf.T_odom_keyframe @ T_kf_cloud
+        cov = compose_covariance(kf.T_odom_keyframe, kf.covariance, T_kf_cloud, res.covariance)
+        why_keyframe = self._keyframe_reason(res)
+        if attempt.method == "global":
+            # A recovery follows a gap or a jump: the motion across it says nothing about the
+            # velocity now, so the next prediction starts from rest.
+            self._accepted.clear()
+        self._advance(stamp_ns, T_odom_cloud)
+        if why_keyframe:
+            self._take_keyframe(stamp_ns, T_odom_cloud, cov, points, prepared)
+        timings["total"] = time.perf_counter() - t0
+        reason = "; ".join(r for r in (attempt.reason, why_keyframe) if r)
+        return FrameResult(stamp_ns, True, attempt.method, T_odom_cloud, cov, T_kf_cloud.copy(),
+                           res.covariance, kf.stamp_ns, bool(why_keyframe), res.fitness,
+                           res.overlap, reason, attempt.registration, timings)
+
+    # ----------------------------------------------------------------------------------------
+    # Stages
+    # ----------------------------------------------------------------------------------------
+
+    def predict(self, stamp_ns: int) -> np.ndarray:
+        """(4, 4) T_odom_cloud expected at ``stamp_ns``: the last accepted pose moved on at the
+        velocity between the last two accepted clouds (no motion with fewer than two)."""
+        if not self._accepted:
+            return np.eye(4)
+        s1, T1 = self._accepted[-1]
+        if len(self._accepted) < 2:
+            return T1.copy()
+        s0, T0 = self._accepted[0]
+        ratio = (stamp_ns - s1) / max(s1 - s0, 1)
+        return T1 @ scale_motion(np.linalg.inv(T0) @ T1, ratio)
+
+    def _register(self, stamp_ns: int, points: np.ndarray, prepared: icp_stage.PreparedCloud,
+                  timings: dict[str, float]) -> _Registration:
+        """Track from the prediction; when that is not accepted, recover globally."""
+        cfg, kf = self.config, self.keyframe
+        assert kf is not None
+        t0 = time.perf_counter()
+        T_guess = np.linalg.inv(kf.T_odom_keyframe) @ self.predict(stamp_ns)
+        tracked = self._icp(prepared, T_guess)
+        if tracked.fitness < cfg.min_fitness and cfg.icp_prior > 0:
+            # The prior held a direction the data do constrain (a poor prediction along a
+            # weakly seen direction): let the data alone finish from there.
+            tracked = self._icp(prepared, tracked.T_target_source, prior=0.0)
+        timings["icp"] = time.perf_counter() - t0
+        if tracked.fitness >= cfg.min_fitness:
+            return _Registration("icp", tracked)
+        why = f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}"
+        if self.global_registration is None:
+            return _Registration("none", tracked, reason=f"{why}; no global registration")
+        t1 = time.perf_counter()
+        try:
+            result = self.global_registration(points, kf.cloud)
+        except ValueError as err:
+            timings["global"] = time.perf_counter() - t1
+            return _Registration("none", tracked, reason=f"{why}; global registration: {err}")
+        if not getattr(result, "valid", False):
+            timings["global"] = time.perf_counter() - t1
+            return _Registration("none", tracked, result,
+                                 f"{why}; global registration invalid: {result.reason}")
+        # The engine's answer is no motion prediction to hold on to: plain ICP from it.
+        recovered = self._icp(prepared, np.asarray(result.T_target_source, np.float64), prior=0.0)
+        timings["global"] = time.perf_counter() - t1
+        if recovered.fitness >= cfg.min_fitness:
+            return _Registration("global", recovered, result, why)
+        return _Registration("none", recovered, result,
+                             f"{why}; global fitness {recovered.fitness:.2f} < "
+                             f"{cfg.min_fitness:.2f}")
+
+    def _in_range(self, points: np.ndarray) -> np.ndarray:
+        """The points within ``max_range`` of the sensor (all when it is 0)."""
+        r = self.config.max_range
+        return points if r <= 0 else points[(points.astype(np.float64) ** 2).sum(1) <= r * r]
+
+    def _icp(self, prepared: icp_stage.PreparedCloud, T_guess: np.ndarray,
+             prior: float | None = None) -> icp_stage.IcpResult:
+        cfg, kf = self.config, self.keyframe
+        assert kf is not None
+        return icp_stage.icp(prepared, kf.prepared, T_guess, cfg.icp_max_distance,
+                             cfg.inlier_distance, cfg.icp_max_iterations,
+                             cfg.icp_prior if prior is None else prior)
+
+    def _keyframe_reason(self, res: icp_stage.IcpResult) -> str:
+        """Why the registered cloud should become the keyframe ("" when it should not)."""
+        cfg = self.config
+        T = res.T_target_source
+        dist, angle = float(np.linalg.norm(T[:3, 3])), rotation_angle_deg(T)
+        if res.fitness < cfg.keyframe_min_overlap:
+            return f"keyframe: fitness {res.fitness:.2f} < {cfg.keyframe_min_overlap:.2f}"
+        if res.overlap < cfg.keyframe_min_overlap:
+            return f"keyframe: overlap {res.overlap:.2f} < {cfg.keyframe_min_overlap:.2f}"
+        if dist > cfg.keyframe_max_translation:
+            return f"keyframe: moved {dist:.2f} m > {cfg.keyframe_max_translation:.2f} m"
+        if angle > cfg.keyframe_max_rotation:
+            return f"keyframe: turned {angle:.1f} deg > {cfg.keyframe_max_rotation:.1f} deg"
+        return ""
+
+    def _take_keyframe(self, stamp_ns: int, T_odom: np.ndarray, cov: np.ndarray,
+                       points: np.ndarray, prepared: icp_stage.PreparedCloud) -> None:
+        self.keyframe = Keyframe(stamp_ns, T_odom.copy(), cov.copy(), points, prepared)
+        self.stats.keyframes += 1
+
+    def _advance(self, stamp_ns: int, T_odom_cloud: np.ndarray) -> None:
+        self._accepted.append((stamp_ns, T_odom_cloud.copy()))
+        self._path.append((stamp_ns, T_odom_cloud.copy()))
