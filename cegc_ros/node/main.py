@@ -41,11 +41,12 @@ def params_file_problem(argv: Sequence[str]) -> str | None:
     return None
 
 
-def main(args: Sequence[str] | None = None) -> int:
+def main(args: Sequence[str] | None = None, engine_factory: Any = None) -> int:
     """Entry point of ``register_node``; returns the process exit code.
 
     Start-up problems (a parameter value, the params file, the checkpoint, the device) end it
     with one ``[FATAL]`` line and exit code 1; arguments it does not know, with exit code 2.
+    ``engine_factory`` replaces the engine process (benchmarks compare an in-process engine).
     """
     argv = list(sys.argv if args is None else args)
     own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
@@ -84,7 +85,7 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         from cegc_ros.node.ros_node import RegisterNode
         try:
-            node = RegisterNode()
+            node = RegisterNode(engine_factory)
         except ParameterError as err:
             return fatal(f"invalid parameter: {err}")
         except EngineStartError as err:

@@ -1,25 +1,32 @@
-"""Benchmark of register_node over real DDS against the engine alone (a script, not a test).
+"""Benchmark of register_node over real DDS (a script, not a test).
 
-    python -m cegc_ros.tools.bench_node [--pairs 20] [--checkpoint PATH] [--replay-seconds 120]
-                                        [--rates 1,2,3,4,6,8] [--out bench.json]
+    python -m cegc_ros.tools.bench_node [--pairs 20] [--checkpoint PATH] [--rates 1,2,3]
+        [--rate-pairs 16] [--responsiveness 300000,1000000,5000000]
+        [--memory-minutes 10] [--memory-sizes 1500,20000,300000] [--skip latency,rate]
+        [--out bench.json]
 
-Measures, at the parameters of ``params/register_node.yaml`` (the defaults):
-  1. engine latency: ``Registrar.register`` on generated 7Scenes-style test pairs, in-process;
-  2. end-to-end latency of a register_node subprocess on the same pairs, one pair at a time:
-     from publishing the source cloud (the target follows at once) to receiving ``~/pose``
-     (1 and 2 alternate pair by pair, so both see the same background load);
-  3. sustained pair rate: pairs published at fixed rates; the highest rate at which the node's
-     ``pairs_dropped`` counter stays 0;
-  4. node memory: RSS sampled once a second while ``cegc-replay`` plays a bag of the pairs
-     (repeated) at real time (2 pairs/s) for ``--replay-seconds``.
+Sections (each can be skipped with ``--skip``; responsiveness and memory run only when asked):
+  latency         ``Registrar.register`` in-process on generated 7Scenes-style test pairs, then
+                  the node (a subprocess at the params file's settings) on the same pairs one
+                  at a time: publish -> ``~/pose``.
+  rate            pairs published at fixed rates: the highest rate at which the node's
+                  ``pairs_dropped`` counter stays 0.
+  responsiveness  one huge pair (each size of ``--responsiveness``: a 7Scenes pair densified
+                  with 0.3%-of-extent jitter) into a node whose engine runs in its own process
+                  (the node as shipped) and into one whose engine runs on a thread of the node's
+                  process (the design before issue 15). While the engine works, the bench calls
+                  ``describe_parameters`` back to back and records the answer times and the gaps
+                  between /diagnostics messages.
+  memory          ``--memory-minutes`` of pairs cycling through ``--memory-sizes`` points, one
+                  pair per second, with the resident memory of the node process and of its engine
+                  process sampled every second.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in a domain derived from
-the pid unless ROS_DOMAIN_ID is set.
+the pid unless ROS_DOMAIN_ID is set. Errors end the benchmark with one line and exit code 1.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -33,7 +40,14 @@ from typing import Any
 
 import numpy as np
 
+from cegc_ros.tools.replay import OneLineParser
+
 REPO = Path(__file__).resolve().parents[2]
+SEC = 10**9
+
+
+class BenchError(RuntimeError):
+    """The benchmark cannot go on (the node did not come up, ...)."""
 
 
 def _env() -> dict[str, str]:
@@ -47,266 +61,422 @@ def _env() -> dict[str, str]:
     return env
 
 
-def _rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
+def _rss_mb(pid: int | None) -> float:
+    if not pid:
+        return float("nan")
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return float("nan")
 
 
 def _pct(values: list[float]) -> dict[str, float]:
     if not values:
-        return {}
+        return {"n": 0}
     a = np.asarray(values) * 1e3
     return {"n": len(values), "p50_ms": round(float(np.percentile(a, 50)), 1),
             "p90_ms": round(float(np.percentile(a, 90)), 1),
             "mean_ms": round(float(a.mean()), 1), "max_ms": round(float(a.max()), 1)}
 
 
-def load_engine(checkpoint: str) -> Any:
-    """The Registrar with the default settings, warmed up like the node's."""
-    from cegc_ros.config import EngineConfig, PreprocessConfig
-    from cegc_ros.engine import Registrar
-
-    reg = Registrar.from_checkpoint(checkpoint or None, device=EngineConfig().device,
-                                    preprocess=PreprocessConfig(), engine=EngineConfig())
-    cloud = np.random.default_rng(0).uniform(-1.0, 1.0, (512, 3)).astype(np.float32)
-    reg.register(cloud, cloud[::-1].copy())
-    return reg
+def densify(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """(M, 3) -> (n, 3): every point kept, the rest repeated with jitter (0.3% of the extent);
+    or a seeded subsample when n < M."""
+    rng = np.random.default_rng(seed)
+    if n <= len(points):
+        return points[np.sort(rng.choice(len(points), n, replace=False))].astype(np.float32)
+    idx = rng.integers(0, len(points), n)
+    idx[: len(points)] = np.arange(len(points))
+    out = points[idx].astype(np.float32)
+    sigma = 0.003 * float(np.ptp(points, axis=0).max())
+    out[len(points):] += rng.normal(0.0, sigma, (n - len(points), 3)).astype(np.float32)
+    return out
 
 
 class _Client:
-    """Publishes clouds to the node and records its poses and diagnostics."""
+    """Publishes clouds to a node and records its poses, diagnostics and service answers."""
 
-    def __init__(self) -> None:
+    def __init__(self, namespace: str = "/") -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
+        from rcl_interfaces.srv import DescribeParameters
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
+        base = namespace.rstrip("/")
+        self.status_name = f"{base}/register_node: registration"
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("cegc_bench", context=self.context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_src = self.node.create_publisher(PointCloud2, "/source_cloud", qos)
-        self.pub_tgt = self.node.create_publisher(PointCloud2, "/target_cloud", qos)
+        self.pub_src = self.node.create_publisher(PointCloud2, f"{base}/source_cloud", qos)
+        self.pub_tgt = self.node.create_publisher(PointCloud2, f"{base}/target_cloud", qos)
+        self.pose_topic = f"{base}/register_node/pose"
+        self.describe = self.node.create_client(
+            DescribeParameters, f"{base}/register_node/describe_parameters")
         self.cond = threading.Condition()
         self.poses: dict[int, float] = {}
         self.diag: dict[str, str] = {}
-        self.node.create_subscription(PoseStamped, "/register_node/pose", self._on_pose, 100)
+        self.diag_times: list[float] = []
+        self.node.create_subscription(PoseStamped, self.pose_topic, self._on_pose, 100)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        threading.Thread(target=self.executor.spin, daemon=True).start()
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
 
     def _on_pose(self, msg: Any) -> None:
         now = time.perf_counter()
         with self.cond:
-            self.poses[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = now
+            self.poses[msg.header.stamp.sec * SEC + msg.header.stamp.nanosec] = now
             self.cond.notify_all()
 
     def _on_diag(self, msg: Any) -> None:
+        now = time.perf_counter()
         for st in msg.status:
-            if st.name.startswith("register_node"):
+            if st.name == self.status_name:
                 with self.cond:
                     self.diag = {kv.key: kv.value for kv in st.values}
+                    self.diag_times.append(now)
                     self.cond.notify_all()
 
-    def wait_connected(self, timeout: float) -> bool:
+    def wait_connected(self, timeout: float, proc: subprocess.Popen) -> bool:
         end = time.monotonic() + timeout
-        while time.monotonic() < end:
+        while time.monotonic() < end and proc.poll() is None:
             if self.pub_src.get_subscription_count() and self.pub_tgt.get_subscription_count() \
-                    and self.node.count_publishers("/register_node/pose") and self.diag:
+                    and self.node.count_publishers(self.pose_topic) and self.diag:
                 return True
             time.sleep(0.1)
         return False
 
     def send(self, src_msg: Any, tgt_msg: Any, stamp: int) -> float:
         for m in (src_msg, tgt_msg):
-            m.header.stamp.sec, m.header.stamp.nanosec = stamp // 10**9, stamp % 10**9
+            m.header.stamp.sec, m.header.stamp.nanosec = stamp // SEC, stamp % SEC
         t0 = time.perf_counter()
         self.pub_src.publish(src_msg)
         self.pub_tgt.publish(tgt_msg)
         return t0
 
+    def describe_s(self, timeout: float = 60.0) -> float | None:
+        """Round trip of one describe_parameters call (s), None if unanswered in time."""
+        from rcl_interfaces.srv import DescribeParameters
+
+        t0 = time.perf_counter()
+        fut = self.describe.call_async(DescribeParameters.Request(names=["sync.slop"]))
+        end = time.monotonic() + timeout
+        while not fut.done() and time.monotonic() < end:
+            time.sleep(0.002)
+        return time.perf_counter() - t0 if fut.done() else None
+
     def close(self) -> None:
         import rclpy
-        self.executor.shutdown()
+        self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(5.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
 
-def _messages(pairs: list[Any]) -> list[tuple[Any, Any]]:
+def _messages(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[Any, Any]]:
     from std_msgs.msg import Header
 
     from msg_adapters.point_cloud2 import xyz_to_cloud
-    return [(xyz_to_cloud(p.source, Header(frame_id="cegc_source")),
-             xyz_to_cloud(p.target, Header(frame_id="cegc_target"))) for p in pairs]
+    return [(xyz_to_cloud(s, Header(frame_id="cegc_source")),
+             xyz_to_cloud(t, Header(frame_id="cegc_target"))) for s, t in pairs]
+
+
+class _Node:
+    """A register_node subprocess (``engine``: 'process' as shipped, or 'inline') + client."""
+
+    def __init__(self, args: Any, env: dict[str, str], engine: str = "process",
+                 namespace: str = "/bench", extra: tuple[str, ...] = ()) -> None:
+        cmd = [sys.executable, "-m", "cegc_ros.tools.bench_node", "--serve", engine,
+               "--ros-args", "--params-file", args.params_file, "-r", f"__ns:={namespace}",
+               "-p", "input.reliable:=true", *extra]
+        if args.checkpoint:
+            cmd += ["-p", f"engine.checkpoint:={Path(args.checkpoint).resolve()}"]
+        self.log_path = Path(tempfile.mkdtemp(prefix="bench_node_")) / "register_node.log"
+        with self.log_path.open("w") as log:
+            self.proc = subprocess.Popen(cmd, env=env, cwd=str(REPO), stdout=log,
+                                         stderr=subprocess.STDOUT)
+        self.client = None
+        try:
+            self.client = _Client(namespace)
+            if not self.client.wait_connected(300.0, self.proc):
+                raise BenchError(f"register_node did not come up; see {self.log_path}")
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def engine_pid(self) -> int | None:
+        with self.client.cond:
+            pid = self.client.diag.get("engine_pid", "")
+        return int(pid) if pid.isdigit() else None
+
+    def close(self) -> int | None:
+        if self.client is not None:
+            self.client.close()
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+
+def load_engine(checkpoint: str) -> Any:
+    """The Registrar with the default settings, warmed up like the node's."""
+    from cegc_ros.node.engine_process import load_registrar
+    from cegc_ros.node.params import SECTIONS
+
+    reg = load_registrar(SECTIONS["preprocess"](),
+                         SECTIONS["engine"](checkpoint=checkpoint))
+    cloud = np.random.default_rng(0).uniform(-1.0, 1.0, (512, 3)).astype(np.float32)
+    reg.register(cloud, cloud[::-1].copy())
+    return reg
+
+
+def bench_latency(args: Any, env: dict[str, str], pairs: list[Any], report: dict) -> None:
+    reg = load_engine(args.checkpoint)
+    eng = []
+    for p in pairs:
+        t0 = time.perf_counter()
+        reg.register(p.source, p.target)
+        eng.append(time.perf_counter() - t0)
+    report["engine"] = {"device": reg.device, "checkpoint": reg.checkpoint_path, **_pct(eng)}
+    print("engine", report["engine"], flush=True)
+    del reg
+    node = _Node(args, env)
+    try:
+        c = node.client
+        report["node_rss_mb_idle"] = round(_rss_mb(node.proc.pid), 1)
+        report["engine_process_rss_mb_idle"] = round(_rss_mb(node.engine_pid), 1)
+        lat, stamp = [], 1_000 * SEC
+        for src, tgt in _messages([(p.source, p.target) for p in pairs]):
+            stamp += SEC // 2
+            t0 = c.send(src, tgt, stamp)
+            with c.cond:
+                if c.cond.wait_for(lambda s=stamp: s in c.poses, 120.0):
+                    lat.append(c.poses[stamp] - t0)
+        time.sleep(1.5)
+        with c.cond:
+            diag = dict(c.diag)
+        report["end_to_end"] = _pct(lat)
+        report["node_engine_p50_ms"] = float(diag.get("engine_p50_ms", "nan"))
+        print("end_to_end", report["end_to_end"], "node engine p50",
+              report["node_engine_p50_ms"], flush=True)
+    finally:
+        node.close()
+
+
+def bench_rate(args: Any, env: dict[str, str], pairs: list[Any], report: dict) -> None:
+    node = _Node(args, env)
+    try:
+        c = node.client
+        msgs = _messages([(p.source, p.target) for p in pairs])
+        rates, stamp = [], 5_000 * SEC
+        for rate in (float(r) for r in args.rates.split(",")):
+            time.sleep(1.5)   # let the node go idle and publish fresh diagnostics
+            with c.cond:
+                dropped0 = int(c.diag.get("pairs_dropped", 0))
+            t_start = time.perf_counter()
+            sent = []
+            for k in range(args.rate_pairs):
+                src, tgt = msgs[k % len(msgs)]
+                stamp += SEC // 2
+                delay = t_start + k / rate - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+                c.send(src, tgt, stamp)
+                sent.append(stamp)
+            with c.cond:
+                c.cond.wait_for(lambda s=sent[-1]: s in c.poses, 60.0)
+            time.sleep(1.5)
+            with c.cond:
+                dropped = int(c.diag.get("pairs_dropped", 0)) - dropped0
+                got = sum(s in c.poses for s in sent)
+            rates.append({"rate_hz": rate, "sent": len(sent), "poses": got, "dropped": dropped})
+            print("rate", rates[-1], flush=True)
+        report["rates"] = rates
+        ok = [r["rate_hz"] for r in rates if r["dropped"] == 0 and r["poses"] == r["sent"]]
+        report["sustained_rate_hz"] = max(ok) if ok else 0.0
+    finally:
+        node.close()
+
+
+def bench_responsiveness(args: Any, env: dict[str, str], pairs: list[Any],
+                         report: dict) -> None:
+    sizes = [int(s) for s in args.responsiveness.split(",")]
+    rows = []
+    for engine in ("process", "inline"):
+        node = _Node(args, env, engine, namespace=f"/resp_{engine}",
+                     extra=("-p", "diagnostics.period:=0.5"))
+        try:
+            c = node.client
+            for k, n in enumerate(sizes):
+                p = pairs[k % len(pairs)]
+                (src, tgt), = _messages([(densify(p.source, n, 1), densify(p.target, n, 2))])
+                stamp = (20_000 + k) * SEC
+                time.sleep(1.0)
+                idle = [c.describe_s() for _ in range(3)]
+                t0 = c.send(src, tgt, stamp)
+                del src, tgt
+                answers: list[float | None] = []
+                while True:
+                    with c.cond:
+                        if stamp in c.poses or time.perf_counter() - t0 > args.pair_timeout:
+                            break
+                    answers.append(c.describe_s(timeout=args.pair_timeout))
+                    time.sleep(0.1)
+                with c.cond:
+                    t_pose = c.poses.get(stamp)
+                    times = [t for t in c.diag_times if t0 <= t <= (t_pose or time.perf_counter())]
+                edges = [t0, *times, t_pose or time.perf_counter()]
+                answered = [a for a in answers if a is not None]
+                rows.append({
+                    "engine": engine, "points": n,
+                    "pose_after_s": None if t_pose is None else round(t_pose - t0, 2),
+                    "describe_idle_ms": _pct([a for a in idle if a is not None]).get("p50_ms"),
+                    "describe_calls": len(answers), "describe_unanswered": len(answers)
+                    - len(answered), **{f"describe_{k}": v for k, v in _pct(answered).items()
+                                        if k in ("p50_ms", "max_ms")},
+                    "diagnostics_received": len(times),
+                    "diagnostics_max_gap_s": round(float(np.diff(edges).max()), 2),
+                })
+                print("responsiveness", rows[-1], flush=True)
+        finally:
+            node.close()
+    report["responsiveness"] = rows
+
+
+def bench_memory(args: Any, env: dict[str, str], pairs: list[Any], report: dict) -> None:
+    sizes = [int(s) for s in args.memory_sizes.split(",")]
+    node = _Node(args, env, namespace="/memory")
+    try:
+        c = node.client
+        msgs = []
+        for k, n in enumerate(sizes):
+            p = pairs[k % len(pairs)]
+            msgs += _messages([(densify(p.source, n, 1), densify(p.target, n, 2))])
+        samples: list[tuple[float, float, float]] = []   # t, node MB, engine MB
+        t_start = time.perf_counter()
+        end = t_start + args.memory_minutes * 60.0
+        stamp, k, last_sample = 30_000 * SEC, 0, -1.0
+        while time.perf_counter() < end:
+            now = time.perf_counter() - t_start
+            if now - last_sample >= 1.0:
+                samples.append((now, _rss_mb(node.proc.pid), _rss_mb(node.engine_pid)))
+                last_sample = now
+            delay = t_start + k * 1.0 - time.perf_counter()     # one pair per second
+            if delay > 0:
+                time.sleep(min(delay, 1.0))
+                continue
+            stamp += SEC
+            src, tgt = msgs[k % len(msgs)]
+            c.send(src, tgt, stamp)
+            k += 1
+        time.sleep(3.0)
+        with c.cond:
+            diag = dict(c.diag)
+        t = np.array([s[0] for s in samples])
+        out: dict[str, Any] = {"minutes": args.memory_minutes, "sizes": sizes, "pairs_sent": k,
+                               "pairs_out": int(diag.get("pairs_out", -1)),
+                               "pairs_dropped": int(diag.get("pairs_dropped", -1)),
+                               "pairs_rejected": int(diag.get("pairs_rejected", -1)),
+                               "engine_restarts": int(diag.get("engine_restarts", -1)),
+                               "latency_p50_ms": diag.get("latency_p50_ms")}
+        for j, name in ((1, "node"), (2, "engine")):
+            rss = np.array([s[j] for s in samples])
+            ok = np.isfinite(rss)
+            if not ok.any():
+                continue
+            half = len(rss) // 2
+            tail = ok[half:]
+            out[name] = {
+                "rss_mb_first": round(float(rss[ok][0]), 1),
+                "rss_mb_last": round(float(rss[ok][-1]), 1),
+                "rss_mb_max": round(float(rss[ok].max()), 1),
+                "rss_mb_median_first_minute": round(float(np.median(rss[ok][t[ok] < 60])), 1),
+                "rss_mb_median_last_minute": round(float(np.median(
+                    rss[ok][t[ok] > t[ok][-1] - 60])), 1),
+                "second_half_slope_mb_per_min": round(float(np.polyfit(
+                    t[half:][tail], rss[half:][tail], 1)[0] * 60.0), 2) if tail.sum() > 2
+                else None,
+                "every_minute": [round(float(v), 1) for v in rss[::60]],
+            }
+        report["memory"] = out
+        print("memory", out, flush=True)
+    finally:
+        node.close()
+
+
+def serve(engine: str, argv: list[str]) -> int:
+    """Run a register_node for the benchmark: as shipped, or with the engine on a thread."""
+    from cegc_ros.node import main as node_main
+
+    factory = None
+    if engine == "inline":
+        from cegc_ros.node.engine_process import InlineEngine, load_registrar
+        factory = lambda pre, eng: InlineEngine(load_registrar(pre, eng))  # noqa: E731
+    return node_main(["register_node", *argv], engine_factory=factory)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="bench_node", description=__doc__.split("\n\n")[0])
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--serve"]:
+        return serve(argv[1], argv[2:])
+    ap = OneLineParser(prog="bench_node", description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=20)
     ap.add_argument("--checkpoint", default="", help="default: the shipped weights")
     ap.add_argument("--params-file", default=str(REPO / "params" / "register_node.yaml"))
     ap.add_argument("--rates", default="1,2,3,4,6,8", help="pairs/s tried for the rate test")
     ap.add_argument("--rate-pairs", type=int, default=20, help="pairs published per rate")
-    ap.add_argument("--replay-seconds", type=float, default=120.0)
+    ap.add_argument("--skip", default="", help="comma-separated: latency, rate")
+    ap.add_argument("--responsiveness", default="",
+                    help="comma-separated cloud sizes for the responsiveness section")
+    ap.add_argument("--pair-timeout", type=float, default=600.0,
+                    help="responsiveness: give up on a pose after this many seconds")
+    ap.add_argument("--memory-minutes", type=float, default=0.0,
+                    help="length of the memory section (0: skip it)")
+    ap.add_argument("--memory-sizes", default="1500,20000,300000")
     ap.add_argument("--out", help="write the figures as JSON here")
     args = ap.parse_args(argv)
     env = _env()
+    skip = {s for s in args.skip.split(",") if s}
 
     from cegc_ros.data.protocols import make_pairs
-    pairs = make_pairs("7scenes", "test", args.pairs)
     report: dict[str, Any] = {
-        "command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else
-                                                       sys.argv[1:])]),
+        "command": " ".join(["python -m cegc_ros.tools.bench_node", *argv]),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}, "
                    f"python {platform.python_version()}",
         "load_avg_at_start": os.getloadavg(),
-        "pairs": args.pairs, "points_per_cloud": int(np.median([len(p.source) for p in pairs])),
     }
-    # 1. the engine alone, before anything else runs in this process: on a worker thread as
-    # in the node, and on the main thread (torch's intra-op threads behave differently there;
-    # on a loaded 2-core machine the main thread is several times slower).
-    reg = load_engine(args.checkpoint)
-
-    def run_engine(registrar: Any, out: list[float]) -> None:
-        for p in pairs:
-            t0 = time.perf_counter()
-            registrar.register(p.source, p.target)
-            out.append(time.perf_counter() - t0)
-
-    eng: list[float] = []
-    worker = threading.Thread(target=run_engine, args=(reg, eng))
-    worker.start()
-    worker.join()
-    eng_main: list[float] = []
-    run_engine(reg, eng_main)
-    report["engine"] = {"device": reg.device, "checkpoint": reg.checkpoint_path,
-                        "thread": "worker (as in the node)", **_pct(eng)}
-    report["engine_main_thread"] = _pct(eng_main)
-    print("engine", report["engine"], "main thread", report["engine_main_thread"], flush=True)
-    del reg
-
-    cmd = [sys.executable, "-m", "cegc_ros.node", "--ros-args", "--params-file",
-           args.params_file]
-    if args.checkpoint:
-        cmd += ["-p", f"engine.checkpoint:={Path(args.checkpoint).resolve()}"]
-    log_path = Path(tempfile.mkdtemp(prefix="bench_node_")) / "register_node.log"
-    with log_path.open("w") as log:
-        proc = subprocess.Popen(cmd, env=env, cwd=str(REPO), stdout=log,
-                                stderr=subprocess.STDOUT)
-    client = _Client()
     try:
-        if not client.wait_connected(120.0):
-            raise SystemExit(f"register_node did not come up; see {log_path}")
-        report["node_rss_mb_idle"] = round(_rss_mb(proc.pid), 1)
-        msgs = _messages(pairs)
-        stamp = 1_000 * 10**9
-
-        # 2. end-to-end latency, one pair at a time; the node's own engine time on the same
-        # pairs comes from its diagnostics (engine_p50_ms), measured in the same conditions.
-        lat = []
-        for src, tgt in msgs:
-            stamp += 10**9 // 2
-            t0 = client.send(src, tgt, stamp)
-            with client.cond:
-                if client.cond.wait_for(lambda s=stamp: s in client.poses, 60.0):
-                    lat.append(client.poses[stamp] - t0)
-        time.sleep(1.5)
-        with client.cond:
-            diag = dict(client.diag)
-        report["end_to_end"] = _pct(lat)
-        report["node_engine_p50_ms"] = float(diag.get("engine_p50_ms", "nan"))
-        report["node_internal_latency_p50_ms"] = float(diag.get("latency_p50_ms", "nan"))
-        if lat:
-            e2e = report["end_to_end"]["p50_ms"]
-            report["end_to_end_over_node_engine_p50"] = round(
-                e2e / report["node_engine_p50_ms"], 3)
-            report["end_to_end_over_engine_p50"] = round(e2e / report["engine"]["p50_ms"], 3)
-        print("end_to_end", report["end_to_end"], "node engine p50",
-              report["node_engine_p50_ms"], flush=True)
-
-        # 3. sustained rate: the highest rate with no dropped pair.
-        rates = []
-        for rate in (float(r) for r in args.rates.split(",")):
-            time.sleep(1.5)   # let the node go idle and publish fresh diagnostics
-            with client.cond:
-                dropped0 = int(client.diag.get("pairs_dropped", 0))
-                done0 = int(client.diag.get("pairs_done", 0))
-            t_start = time.perf_counter()
-            sent = []
-            for k in range(args.rate_pairs):
-                src, tgt = msgs[k % len(msgs)]
-                stamp += 10**9 // 2
-                delay = t_start + k / rate - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-                client.send(src, tgt, stamp)
-                sent.append(stamp)
-            with client.cond:
-                client.cond.wait_for(lambda s=sent[-1]: s in client.poses, 30.0)
-            time.sleep(1.5)
-            with client.cond:
-                dropped = int(client.diag.get("pairs_dropped", 0)) - dropped0
-                done = int(client.diag.get("pairs_done", 0)) - done0
-                got = sum(s in client.poses for s in sent)
-            rates.append({"rate_hz": rate, "sent": len(sent), "poses": got,
-                          "dropped": dropped, "done": done})
-            print("rate", rates[-1], flush=True)
-        report["rates"] = rates
-        ok = [r["rate_hz"] for r in rates if r["dropped"] == 0 and r["poses"] == r["sent"]]
-        report["sustained_rate_hz"] = max(ok) if ok else 0.0
-
-        # 4. RSS over a replay at real time.
-        from cegc_ros.data.bag import write_pairs
-        from cegc_ros.tools.replay import replay_bag
-        n_replay = max(1, int(args.replay_seconds * 2))
-        bag = Path(tempfile.mkdtemp(prefix="bench_bag_")) / "pairs"
-        write_pairs(bag, [pairs[k % len(pairs)] for k in range(n_replay)])
-        samples: list[tuple[float, float]] = []
-        stop = threading.Event()
-
-        def sample() -> None:
-            t0 = time.monotonic()
-            while not stop.is_set():
-                samples.append((time.monotonic() - t0, _rss_mb(proc.pid)))
-                stop.wait(1.0)
-
-        sampler = threading.Thread(target=sample, daemon=True)
-        sampler.start()
-        res = replay_bag(bag, rate=1.0, timeout=10.0)
-        stop.set()
-        sampler.join()
-        rss = np.array([s[1] for s in samples])
-        t = np.array([s[0] for s in samples])
-        half = len(rss) // 2
-        report["replay"] = {
-            "seconds": round(res.wall_s, 1), "pairs": len(res.records),
-            "poses": sum(r.T_est is not None for r in res.records),
-            "dropped": int(res.diagnostics.get("pairs_dropped", -1)),
-            "rss_mb_start": round(float(rss[0]), 1), "rss_mb_end": round(float(rss[-1]), 1),
-            "rss_mb_max": round(float(rss.max()), 1),
-            "rss_mb_second_half_slope_per_min": round(float(
-                np.polyfit(t[half:], rss[half:], 1)[0] * 60.0), 2) if len(rss) - half > 2 else None,
-            "latency": _pct([r.latency_s for r in res.records if r.latency_s is not None]),
-            "rss_mb_every_10s": [round(float(v), 1) for v in rss[::10]],
-        }
-        print("replay", report["replay"], flush=True)
-        report["node_diagnostics"] = res.diagnostics
-    finally:
-        client.close()
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        report["node_exit_code"] = proc.returncode
-        report["load_avg_at_end"] = os.getloadavg()
+        pairs = make_pairs("7scenes", "test", args.pairs)
+        report["points_per_cloud"] = int(np.median([len(p.source) for p in pairs]))
+        if "latency" not in skip:
+            bench_latency(args, env, pairs, report)
+        if "rate" not in skip:
+            bench_rate(args, env, pairs, report)
+        if args.responsiveness:
+            bench_responsiveness(args, env, pairs, report)
+        if args.memory_minutes > 0:
+            bench_memory(args, env, pairs, report)
+    except (BenchError, OSError, ValueError) as err:
+        print(f"bench_node: {' '.join(str(err).split())}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("bench_node: interrupted", file=sys.stderr)
+        return 130
+    report["load_avg_at_end"] = os.getloadavg()
     text = json.dumps(report, indent=1)
     if args.out:
         Path(args.out).write_text(text)
