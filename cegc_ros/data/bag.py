@@ -1,5 +1,8 @@
 """Registration pairs stored as rosbag2 files (sqlite3 or mcap), via the ``rosbags`` library.
 
+Sequence bags (one cloud topic with ground-truth poses, for sequential mode): the section
+"Sequence bags" below (:func:`write_sequence`, :func:`read_sequence`).
+
 Layout of a pair bag (one pair = messages sharing one header stamp; pairs 0.5 s apart):
 
 =====================  ==============================  ==============================
@@ -17,6 +20,7 @@ this module needs neither rclpy nor a ROS installation.
 
 from __future__ import annotations
 
+import itertools
 import json
 import sqlite3
 import struct
@@ -315,3 +319,176 @@ def _to_pair(slot: dict[str, Any], stamp: int, path: Path) -> BagPair:
             raise BagError(f"{path}: pair_info at stamp {stamp} is not JSON: {err}") from err
     return BagPair(pointcloud2_to_xyz(slot[TOPIC_SOURCE]), pointcloud2_to_xyz(slot[TOPIC_TARGET]),
                    T, stamp, info)
+
+
+# --------------------------------------------------------------------------------------------
+# Sequence bags: one cloud stream with ground-truth poses (sequential mode, cegc-eval-seq)
+# --------------------------------------------------------------------------------------------
+#
+# =========================  ==============================  =====================================
+# topic                      type                            content
+# =========================  ==============================  =====================================
+# /cegc/cloud                sensor_msgs/msg/PointCloud2     float32 x y z, the sensor's frame
+# /cegc/cloud_ground_truth   geometry_msgs/msg/PoseStamped   T_world_cloud, frame cegc_world
+# /cegc/sequence_info        std_msgs/msg/String             JSON, once, logged at the first stamp
+# =========================  ==============================  =====================================
+#
+# A cloud and its ground truth share one header stamp. Replay /cegc/cloud onto the node's
+# ``cloud`` topic; the ground truth is for evaluation.
+
+TOPIC_CLOUD = "/cegc/cloud"
+TOPIC_CLOUD_GT = "/cegc/cloud_ground_truth"
+TOPIC_SEQUENCE_INFO = "/cegc/sequence_info"
+FRAME_WORLD = "cegc_world"
+
+_SEQUENCE_TYPES = {TOPIC_CLOUD: "sensor_msgs/msg/PointCloud2",
+                   TOPIC_CLOUD_GT: "geometry_msgs/msg/PoseStamped",
+                   TOPIC_SEQUENCE_INFO: "std_msgs/msg/String"}
+
+
+@dataclass
+class BagFrame:
+    """One cloud of a sequence bag.
+
+    cloud: (N, 3) float32 finite points in the sensor frame ``frame_id``.
+    T_world_cloud: (4, 4) float64 ground truth, or None when the bag has none for this stamp.
+    """
+
+    cloud: np.ndarray
+    T_world_cloud: np.ndarray | None
+    stamp_ns: int
+    frame_id: str
+
+
+def write_sequence(path: str | Path, sequence: Any, storage: str = "sqlite3") -> int:
+    """Write a sequence into a new rosbag2 directory ``path``; returns the clouds written.
+
+    ``sequence``: an object with ``clouds`` (list of (N, 3)), ``poses`` ((K, 4, 4)
+    T_world_cloud, or None: no ground-truth topic), ``stamps_ns`` (K increasing ints),
+    ``frame_id`` and ``info`` (dict), e.g. :class:`cegc_ros.data.sequences.Sequence`. Raises
+    BagError if ``path`` exists, the storage is unknown, the stamps do not increase, the lengths
+    differ, or rosbags refuses to write.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+
+    if storage not in STORAGES:
+        raise BagError(f"unknown storage {storage!r}; expected one of {STORAGES}")
+    path = Path(path)
+    if path.exists():
+        raise BagError(f"{path} exists already; rosbag2 writes new bags only")
+    clouds, poses = list(sequence.clouds), sequence.poses
+    stamps = [int(s) for s in sequence.stamps_ns]
+    if len(stamps) != len(clouds) or (poses is not None and len(poses) != len(clouds)):
+        raise BagError(f"sequence has {len(clouds)} clouds, {len(stamps)} stamps and "
+                       f"{'no' if poses is None else len(poses)} poses")
+    if any(b <= a for a, b in itertools.pairwise(stamps)):
+        raise BagError("sequence stamps must increase")
+    ts = _typestore()
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    topics = [TOPIC_CLOUD, TOPIC_SEQUENCE_INFO] + ([TOPIC_CLOUD_GT] if poses is not None else [])
+    try:
+        with Writer(path, version=9, storage_plugin=plugin) as writer:
+            conns = {t: writer.add_connection(t, _SEQUENCE_TYPES[t], typestore=ts) for t in topics}
+            if clouds:
+                info = ts.types["std_msgs/msg/String"](
+                    data=json.dumps(dict(sequence.info), default=_jsonable))
+                writer.write(conns[TOPIC_SEQUENCE_INFO], stamps[0],
+                             ts.serialize_cdr(info, _SEQUENCE_TYPES[TOPIC_SEQUENCE_INFO]))
+            for k, (stamp, cloud) in enumerate(zip(stamps, clouds)):
+                msgs = [(TOPIC_CLOUD, xyz_to_pointcloud2(
+                    ts, cloud, _header(ts, stamp, str(sequence.frame_id))))]
+                if poses is not None:
+                    msgs.append((TOPIC_CLOUD_GT, matrix_to_pose_stamped(
+                        ts, poses[k], _header(ts, stamp, FRAME_WORLD))))
+                for topic, msg in msgs:
+                    writer.write(conns[topic], stamp, ts.serialize_cdr(msg, _SEQUENCE_TYPES[topic]))
+    except WriterError as err:
+        raise BagError(f"cannot write bag {path}: {err}") from err
+    return len(clouds)
+
+
+def _open_sequence(path: str | Path) -> tuple[Any, Any, Path]:
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except _read_errors() as err:
+        raise BagError(f"cannot open bag {path}: {err}") from err
+    topics = {c.topic: c for c in reader.connections}
+    if TOPIC_CLOUD not in topics:
+        reader.close()
+        raise BagError(f"{path} is not a sequence bag: topic {TOPIC_CLOUD} missing; it has "
+                       f"{sorted(topics)}")
+    for t, c in topics.items():
+        if t in _SEQUENCE_TYPES and c.msgtype != _SEQUENCE_TYPES[t]:
+            reader.close()
+            raise BagError(f"{path}: topic {t} has type {c.msgtype}, expected "
+                           f"{_SEQUENCE_TYPES[t]}")
+    return reader, _typestore(), path
+
+
+def read_sequence(path: str | Path) -> Iterator[BagFrame]:
+    """Yield the clouds of a sequence bag (sqlite3 or mcap) in stamp order, each with its
+    ground truth (None where the bag has none), streaming. Raises BagError naming the problem
+    for a missing, foreign, truncated or malformed bag, or a ground truth without a cloud."""
+    reader, ts, path = _open_sequence(path)
+    errors = _read_errors()
+    try:
+        wanted = [c for c in reader.connections if c.topic in (TOPIC_CLOUD, TOPIC_CLOUD_GT)]
+        expected = {c.topic for c in wanted if c.msgcount > 0}
+        listed = sum(c.msgcount for c in wanted)
+        pending: dict[int, dict[str, Any]] = {}
+        seen = 0
+        try:
+            for conn, _, raw in reader.messages(connections=wanted):
+                seen += 1
+                msg = ts.deserialize_cdr(raw, conn.msgtype)
+                stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+                slot = pending.setdefault(stamp, {})
+                if conn.topic in slot:
+                    raise BagError(f"{path}: two {conn.topic} messages with stamp {stamp}")
+                slot[conn.topic] = msg
+                if expected <= slot.keys():
+                    # Older stamps still pending lack their ground truth: they come first.
+                    for old in sorted(k for k in pending if k <= stamp):
+                        yield _to_frame(pending.pop(old), old, path)
+        except errors as err:
+            raise BagError(f"{path}: storage unreadable after {seen} of {listed} messages "
+                           f"(truncated or corrupted?): {err}") from err
+        if seen < listed:
+            raise BagError(f"{path} is truncated: metadata lists {listed} messages, storage "
+                           f"has {seen}")
+        for stamp in sorted(pending):
+            yield _to_frame(pending[stamp], stamp, path)
+    finally:
+        reader.close()
+
+
+def _to_frame(slot: dict[str, Any], stamp: int, path: Path) -> BagFrame:
+    if TOPIC_CLOUD not in slot:
+        raise BagError(f"{path}: ground truth at stamp {stamp} has no cloud (truncated bag?)")
+    msg = slot[TOPIC_CLOUD]
+    T = pose_to_matrix(slot[TOPIC_CLOUD_GT].pose) if TOPIC_CLOUD_GT in slot else None
+    return BagFrame(pointcloud2_to_xyz(msg), T, stamp, str(msg.header.frame_id))
+
+
+def read_sequence_info(path: str | Path) -> dict[str, Any]:
+    """The /cegc/sequence_info JSON of a sequence bag ({} when it has none)."""
+    reader, ts, path = _open_sequence(path)
+    try:
+        conns = [c for c in reader.connections if c.topic == TOPIC_SEQUENCE_INFO]
+        for conn, _, raw in reader.messages(connections=conns):
+            text = ts.deserialize_cdr(raw, conn.msgtype).data
+            try:
+                return dict(json.loads(text))
+            except (json.JSONDecodeError, TypeError, ValueError) as err:
+                raise BagError(f"{path}: sequence_info is not a JSON object: {err}") from err
+    except _read_errors() as err:
+        raise BagError(f"{path}: storage unreadable: {err}") from err
+    finally:
+        reader.close()
+    return {}
