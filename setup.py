@@ -40,6 +40,7 @@ setup(
             "cegc-register = cegc_ros.entry_points:cegc_register",
             "cegc-demo = cegc_ros.entry_points:cegc_demo",
             "cegc-eval = cegc_ros.entry_points:cegc_eval",
+            "cegc-eval-seq = cegc_ros.entry_points:cegc_eval_seq",
             "cegc-make-bag = cegc_ros.entry_points:cegc_make_bag",
             "cegc-make-pairs = cegc_ros.entry_points:cegc_make_pairs",
             "cegc-replay = cegc_ros.entry_points:cegc_replay",

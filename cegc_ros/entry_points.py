@@ -14,6 +14,7 @@ SCRIPTS = {
     "cegc-register": "cegc_ros.tools.register_files",
     "cegc-demo": "cegc_ros.tools.demo",
     "cegc-eval": "cegc_ros.tools.evaluate",
+    "cegc-eval-seq": "cegc_ros.tools.evaluate_seq",
     "cegc-make-bag": "cegc_ros.tools.make_bag",
     "cegc-make-pairs": "cegc_ros.tools.make_pairs",
     "cegc-replay": "cegc_ros.tools.replay",
@@ -40,6 +41,10 @@ def cegc_demo() -> int:
 
 def cegc_eval() -> int:
     return _run("cegc-eval")
+
+
+def cegc_eval_seq() -> int:
+    return _run("cegc-eval-seq")
 
 
 def cegc_make_bag() -> int:
