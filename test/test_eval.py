@@ -354,7 +354,7 @@ def test_ablation_rows_change_what_the_engine_does(tmp_path, tiny_checkpoint, sm
     assert len({id(r.registrar) for r in runners.values()}) == 1          # one copy of the weights
     results = {}
     for name, run in runners.items():
-        T, valid, _, _ = run(src, tgt)
+        T, _, _, _ = run(src, tgt)
         results[name] = run.last
         assert run.registrar.engine == run.engine                      # what ran is the row's config
         assert T.shape == (4, 4) and np.isfinite(T).all()

@@ -3,7 +3,7 @@ peak memory, with and without jemalloc, and RANSAC and SC2-PCR on the same pairs
 
     python -m cegc_ros.tools.bench_engine [--sizes 1500,20000,300000,5000000] [--pairs 3]
         [--repeats 2] [--methods cegc,ransac,sc2pcr] [--allocators jemalloc,system]
-        [--cache .cache/bench] [--json runs/bench_engine.json]
+        [--threads 0] [--cache .cache/bench] [--json runs/bench_engine.json]
 
 Pairs (generated once into ``--cache``, float32 .npy, metres): at 1.5k points the synthetic
 7Scenes-protocol test pairs (1536-point crops, normalised units, what the paper's 7Scenes
@@ -18,7 +18,8 @@ warm-up registration, then ``--pairs`` x ``--repeats`` timed ones; per stage the
 90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
 features / registration). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
 (cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the machine's
-load; ``--json`` keeps every number.
+load; ``--json`` keeps every number. ``--threads N`` sets OMP_NUM_THREADS=N in the workers
+(torch and Open3D; 0 keeps the libraries' defaults, as the node does with ``engine.threads: 0``).
 """
 
 from __future__ import annotations
@@ -139,11 +140,13 @@ def _jemalloc_loaded() -> bool:
     return jemalloc_loaded()
 
 
-def _environment(allocator: str) -> dict[str, str]:
+def _environment(allocator: str, threads: int = 0) -> dict[str, str]:
     from cegc_ros.allocator import allocator_environment, jemalloc_path
 
     env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MALLOC_CONF")}
     env.pop("CEGC_NO_JEMALLOC", None)
+    if threads > 0:
+        env["OMP_NUM_THREADS"] = str(threads)
     if allocator == "system":
         env["CEGC_NO_JEMALLOC"] = "1"
         return env
@@ -157,17 +160,18 @@ def load_line() -> str:
     return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def run_one(method: str, files: list[Path], repeats: int, allocator: str) -> dict[str, Any]:
+def run_one(method: str, files: list[Path], repeats: int, allocator: str, threads: int = 0) -> dict[str, Any]:
     """One worker subprocess; its JSON result plus the load around it."""
     cmd = [sys.executable, "-m", "cegc_ros.tools.bench_engine", "--worker", method,
            "--repeats", str(repeats), *[str(f) for f in files]]
     before = load_line()
-    proc = subprocess.run(cmd, env=_environment(allocator), capture_output=True, text=True, check=False)
+    proc = subprocess.run(cmd, env=_environment(allocator, threads), capture_output=True, text=True,
+                          check=False)
     if proc.returncode != 0:
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise BenchError(f"{method} worker on {files[0].name} failed ({proc.returncode}): {tail}")
     result = json.loads(proc.stdout.strip().splitlines()[-1])
-    result.update(allocator=allocator, load_before=before, load_after=load_line())
+    result.update(allocator=allocator, threads=threads, load_before=before, load_after=load_line())
     if (allocator == "jemalloc") != result["jemalloc"]:
         raise BenchError(f"{method}: asked for {allocator}, the worker had jemalloc={result['jemalloc']}")
     return result
@@ -208,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=2, help="timed runs of each pair (default 2)")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--allocators", default=",".join(ALLOCATORS))
+    ap.add_argument("--threads", type=int, default=0, help="OMP_NUM_THREADS of the workers (0: default)")
     ap.add_argument("--cache", default=".cache/bench", help="where the generated pairs are kept")
     ap.add_argument("--json", default=None, help="write every number to this file")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
@@ -230,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             files = make_pairs(size, args.pairs, Path(args.cache))
             for allocator in allocators:
                 for method in methods:
-                    r = run_one(method, files, args.repeats, allocator)
+                    r = run_one(method, files, args.repeats, allocator, args.threads)
                     print(f"{size} {allocator} {method}: total median {r['stages']['total']['median_ms']:.0f} ms, "
                           f"peak RSS {r['peak_rss_mb']:.0f} MB ({r['load_after']})", flush=True)
                     results.append(r)
