@@ -17,10 +17,6 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["cegc_ros", "cegc_ros.*", "msg_adapters", "msg_adapters.*"]),
-    # A second copy next to the package, for engine.DEFAULT_WEIGHTS, which reads the package dir.
-    # Once the engine loads through cegc_ros.paths.shipped_weights, this line goes and
-    # share/cegc_ros/weights below is the only copy.
-    package_data={PACKAGE: ["weights/*.pt"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

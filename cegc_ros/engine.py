@@ -38,7 +38,13 @@ from .config import EngineConfig, PreprocessConfig
 from .geometry import LEGACY_FEATURES, prepare_pair
 
 CHECKPOINT_FORMAT = 1
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "cegc_7scenes_noise.pt"
+
+
+def default_weights() -> Path:
+    """The weights shipped with the package (one copy: share/cegc_ros/weights when installed,
+    cegc_ros/weights in a checkout; cegc_ros.paths); ShippedFileError when absent."""
+    from .paths import ENGINE_WEIGHTS, shipped_weights
+    return shipped_weights(ENGINE_WEIGHTS)
 
 
 class CheckpointError(RuntimeError):
@@ -143,7 +149,8 @@ class Registrar:
         # engine.compile: a compiled graph for clouds of the start-up num_points (a new size would
         # recompile for ~45 s in the middle of a stream, so other sizes run eagerly).
         self._compiled: Any = None
-        self._compile_key: tuple[int, int, str] = (self.preprocess.num_points, 0, "")
+        self._compile_points = self.preprocess.num_points
+        self._compile_key: tuple[int, str] = (0, "")
         self.compiled_runs = 0                # forward passes that used the compiled graph
 
     @classmethod
@@ -154,7 +161,7 @@ class Registrar:
         import torch
         engine = copy.deepcopy(engine) if engine else EngineConfig()
         if path in (None, ""):
-            path = engine.checkpoint or DEFAULT_WEIGHTS
+            path = engine.checkpoint or default_weights()
         dev = resolve_device(device if device != "auto" else engine.device)
         if engine.threads > 0:
             torch.set_num_threads(engine.threads)
@@ -180,7 +187,7 @@ class Registrar:
             return 0.0
         t0 = time.perf_counter()
         rng = np.random.default_rng(0)
-        n = self.preprocess.num_points
+        n = self._compile_points
         with self._lock:
             clouds = [rng.uniform(-1, 1, (4 * n, 3)) * [1.0, 1.0, 0.3] for _ in range(2)]
             try:
@@ -193,9 +200,9 @@ class Registrar:
 
     def _network(self, n_source: int, n_target: int, eng: EngineConfig) -> Any:
         """The model, or under engine.compile a compiled one for start-up-sized clouds."""
-        if not eng.compile or not n_source == n_target == self.preprocess.num_points:
+        if not eng.compile or eng.candidates == "all" or not n_source == n_target == self._compile_points:
             return self.model
-        key = (n_source, eng.learned_candidates + eng.fpfh_candidates, eng.candidates)
+        key = (eng.learned_candidates + eng.fpfh_candidates, eng.candidates)
         if self._compiled is None or key != self._compile_key:
             import torch
             self._compiled = _Compiled(self.model, torch.compile(self.model.score_candidates, dynamic=False))

@@ -4,7 +4,7 @@ There is one copy of each. An installed package (``pip install .``, ``colcon bui
 under ``share/cegc_ros/`` of its prefix, found through the ament index; a source checkout has
 them in the repository (``cegc_ros/weights/``, ``params/``), next to the package.
 
-    shipped_weights("cegc_7scenes.pt")       # Path of the first network's weights
+    shipped_weights(ENGINE_WEIGHTS)          # Path of the weights the engine loads
     shipped_params("register_node.yaml")      # Path of the node's parameter file
 
 Standard library only (``ament_index_python`` is imported when it is needed), so tools that
@@ -16,8 +16,9 @@ from __future__ import annotations
 from pathlib import Path
 
 PACKAGE = "cegc_ros"
-#: The weights the engine's cascade loads by default: first and second network.
-WEIGHT_NAMES = ("cegc_7scenes.pt", "cegc_7scenes_noise.pt")
+#: The weights the engine loads by default (cegc_ros.engine.default_weights).
+ENGINE_WEIGHTS = "cegc_7scenes_noise.pt"
+WEIGHT_NAMES = (ENGINE_WEIGHTS,)
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 _CHECKOUT = _PACKAGE_DIR.parent          # the repository root when running from a checkout
@@ -61,7 +62,7 @@ def _find(kind: str, name: str, in_checkout: Path, in_share: str) -> Path:
 
 
 def shipped_weights(name: str) -> Path:
-    """The shipped weights file ``name`` (e.g. ``cegc_7scenes.pt``); ShippedFileError if absent."""
+    """The shipped weights file ``name`` (e.g. ``ENGINE_WEIGHTS``); ShippedFileError if absent."""
     return _find("weights", name, _PACKAGE_DIR / "weights", "weights")
 
 

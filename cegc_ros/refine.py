@@ -39,9 +39,13 @@ def fitness(source: np.ndarray, target: np.ndarray, T: np.ndarray, distance: flo
 
 
 def median_spacing(points: np.ndarray) -> float:
-    """Median nearest-neighbour distance within one cloud."""
+    """Median nearest-neighbour distance within one cloud, over its distinct points (the
+    network's points repeat when a cloud has fewer than preprocess.num_points)."""
     from scipy.spatial import cKDTree
-    d, _ = cKDTree(points).query(points, k=2)
+    pts = np.unique(points, axis=0)
+    if len(pts) < 2:
+        raise ValueError("a cloud needs at least 2 distinct points")
+    d, _ = cKDTree(pts).query(pts, k=2)
     return float(np.median(d[:, 1]))
 
 

@@ -157,3 +157,39 @@ def test_cpu_and_cuda_agree():
         b = model.cuda()(*(v.cuda() for v in x))
     assert torch.allclose(a.src_overlap_logits, b.src_overlap_logits.cpu(), atol=1e-3)
     assert torch.allclose(a.R, b.R.cpu(), atol=1e-3)
+
+
+@pytest.mark.parametrize("variant", ["ri", "paper"])
+def test_candidate_scores_are_the_all_pairs_scores_of_those_pairs_up_to_the_context(variant):
+    """score_candidates runs CAMS on N x k pairs: with every target point a candidate, the pair
+    embedding equals forward()'s all-pairs one, so the scores agree exactly."""
+    torch.manual_seed(0)
+    cfg = small_cfg(variant=variant, overlap_ratio=1.0)
+    model = CEGC(cfg).eval()
+    args = inputs(40, 40)
+    with torch.no_grad():
+        full = model(*args)
+        allc = torch.arange(40).expand(1, 40, 40)
+        cand = model.score_candidates(*args, k_learned=0, extra=allc)
+        # forward() orders rows and columns by the top-N selection: undo it
+        ix, iy = full.src_idx[0], full.tgt_idx[0]
+        expect = torch.empty(40, 40)
+        expect[ix[:, None], iy[None, :]] = full.scores[0]
+    torch.testing.assert_close(cand.scores[0], expect, atol=1e-4, rtol=1e-4)
+    assert cand.candidates.shape == (1, 40, 40)
+
+
+def test_learned_candidates_are_the_nearest_in_feature_space_and_extra_ones_follow():
+    torch.manual_seed(0)
+    model = CEGC(small_cfg()).eval()
+    args = inputs(50, 60)
+    extra = torch.randint(0, 60, (1, 50, 2))
+    with torch.no_grad():
+        out = model.score_candidates(*args, k_learned=3, extra=extra)
+    assert out.candidates.shape == out.scores.shape == (1, 50, 5) and out.conf_logits.shape == (1, 50)
+    assert torch.equal(out.candidates[..., 3:], extra)
+    sim = torch.nn.functional.normalize(out.src_features, dim=-1) @ \
+        torch.nn.functional.normalize(out.tgt_features, dim=-1).transpose(1, 2)
+    assert torch.equal(out.candidates[..., :3], sim.topk(3, dim=-1).indices)
+    with pytest.raises(ValueError, match="needs k_learned > 0 or extra"):
+        model.score_candidates(*args, k_learned=0)

@@ -22,10 +22,10 @@ import ros_helpers as rh
 rclpy = pytest.importorskip("rclpy")
 
 from cegc_ros.config import PreprocessConfig
-from cegc_ros.engine import DEFAULT_WEIGHTS
+from cegc_ros.engine import default_weights
 
 SEC = 10**9
-CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", DEFAULT_WEIGHTS))
+CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", default_weights()))
 NUM_POINTS = 256
 NODE_ARGS = ["--ros-args", "--params-file", f"{rh.REPO}/params/register_node.yaml",
              "-p", f"engine.checkpoint:={CHECKPOINT}", "-p", "input.reliable:=true",

@@ -30,14 +30,14 @@ def _one(points: int, repeats: int, threads: int) -> dict:
     import numpy as np
     import torch
 
-    from cegc_ros.engine import DEFAULT_WEIGHTS, load_checkpoint
+    from cegc_ros.engine import default_weights, load_checkpoint
     from cegc_ros.geometry import normals_and_fpfh
     from cegc_ros.model.cegc import _take
     from cegc_ros.model.hoce import top_n_indices
 
     if threads > 0:
         torch.set_num_threads(threads)
-    model, _ = load_checkpoint(DEFAULT_WEIGHTS, "cpu")
+    model, _ = load_checkpoint(default_weights(), "cpu")
     rng = np.random.default_rng(0)
     # A box-room-like cloud: normals and FPFH as the engine computes them.
     pts = rng.uniform(-0.5, 0.5, (points, 3)).astype(np.float32)
@@ -145,8 +145,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bench_model: {n} points failed: {out.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
             return 1
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    from cegc_ros.engine import DEFAULT_WEIGHTS, load_checkpoint
-    model, _ = load_checkpoint(DEFAULT_WEIGHTS, "cpu")
+    from cegc_ros.engine import default_weights, load_checkpoint
+    model, _ = load_checkpoint(default_weights(), "cpu")
     params = sum(p.numel() for p in model.parameters())
     print(f"machine: {platform.machine()}, {torch.get_num_threads()} torch threads by default, "
           f"torch {torch.__version__}; network parameters: {params / 1e6:.2f} M")

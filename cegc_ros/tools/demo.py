@@ -169,11 +169,11 @@ def with_fitness(pairs: Sequence[Any], outcomes: Sequence[Any]) -> list[Any]:
 
 def _check_weights(checkpoint: str | None, params: Path | None) -> None:
     """Fail early, in one line, when the node would have no weights to load."""
-    from cegc_ros.engine import DEFAULT_WEIGHTS
+    from cegc_ros.engine import default_weights
     from cegc_ros.tools.evaluate import EvalError, engine_configs
 
     _, eng = engine_configs(params)
-    path = Path(checkpoint or eng.checkpoint or DEFAULT_WEIGHTS)
+    path = Path(checkpoint or eng.checkpoint or default_weights())
     if not path.is_file():
         raise EvalError(f"no CEGC weights at {path}: pass --checkpoint PATH, or run only the "
                         f"baselines with --methods icp,fgr,ransac")
