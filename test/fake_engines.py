@@ -34,6 +34,7 @@ class Result:
     timings: dict = field(default_factory=dict)
     checksum: float = 0.0         # sum of every coordinate received (data integrity checks)
     pid: int = 0                  # the process that registered
+    omp_wait_policy: str = ""     # OMP_WAIT_POLICY in that process's environment
 
 
 class EchoRegistrar:
@@ -76,7 +77,8 @@ class EchoRegistrar:
                                "source_points_in": float(len(src)),
                                "target_points_in": float(len(tgt))},
                       checksum=float(np.float64(src).sum() + np.float64(tgt).sum()),
-                      pid=os.getpid())
+                      pid=os.getpid(),
+                      omp_wait_policy=os.environ.get("OMP_WAIT_POLICY", "<unset>"))
 
 
 def echo(preprocess, engine) -> EchoRegistrar:

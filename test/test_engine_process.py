@@ -117,3 +117,20 @@ def test_close_ends_a_registration_in_progress():
     assert not t.is_alive() and isinstance(outcome[0], EngineDied)
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_thread_environment_defaults_and_the_users_choice_wins(monkeypatch):
+    from cegc_ros.node.engine_process import THREAD_ENV
+
+    assert THREAD_ENV == {"OMP_WAIT_POLICY": "PASSIVE"}    # docs/node.md, CPU contention
+    for user, expected in ((None, "PASSIVE"), ("ACTIVE", "ACTIVE")):
+        if user is None:
+            monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+        else:
+            monkeypatch.setenv("OMP_WAIT_POLICY", user)
+        eng = EngineProcess(PreprocessConfig(), EngineConfig(), factory="fake_engines:echo")
+        eng.start()
+        try:
+            assert eng.register(_cloud(64, 0), _cloud(64, 1)).omp_wait_policy == expected
+        finally:
+            eng.close()
