@@ -2,11 +2,9 @@
 
 Everything that is not rclpy lives in sibling modules: the parameters' descriptions
 (params.py), the mode that turns messages into jobs (pairs_mode.py), the worker thread
-(worker.py) and the engine process (engine_process.py). The construction is split into
-steps (:meth:`RegisterNode.setup_parameters`, :meth:`~RegisterNode.start_engine`,
-:meth:`~RegisterNode.create_outputs`, :meth:`~RegisterNode.create_inputs`,
-:meth:`~RegisterNode.start_worker`) so that a managed (lifecycle) variant can run them from
-its transitions.
+(worker.py) and the engine process (engine_process.py). The node's behaviour is a mixin
+(:class:`RegistrationNodeMixin`) whose construction steps a managed (lifecycle) variant can
+run from its transitions; :class:`RegisterNode` is the plain node that runs them at once.
 """
 
 from __future__ import annotations
@@ -76,38 +74,15 @@ def descriptor(spec: ParamSpec) -> ParameterDescriptor:
     return d
 
 
-class RegisterNode(Node):
-    """Pairs the two cloud topics, runs the engine in its own process, publishes results.
+class RegistrationNodeMixin:
+    """The register_node behaviour for any rclpy Node class (plain or lifecycle).
 
-    Args:
-        engine_factory: builds the engine from (preprocess, engine) settings; the default is
-            :class:`EngineProcess` with the real Registrar. Tests pass stand-ins.
-        node_name: the node's name (``register_node``).
-        **node_kwargs: passed to rclpy's Node (``parameter_overrides``, ``context``, ...).
-
-    Raises:
-        cegc_ros.node.params.ParameterError: a parameter value is unacceptable.
-        cegc_ros.node.engine_process.EngineStartError: the engine did not start.
+    Construction steps, in order: :meth:`setup_parameters`, :meth:`start_engine`,
+    :meth:`create_outputs`, :meth:`create_inputs`, :meth:`start_worker`; :meth:`close`
+    undoes the last two and the engine. :class:`RegisterNode` runs them all at once; a managed
+    node can run them from its transitions (and override :meth:`create_outputs` to make
+    lifecycle publishers).
     """
-
-    def __init__(self, engine_factory: EngineFactory | None = None,
-                 node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
-        super().__init__(node_name, **node_kwargs)
-        self.setup_parameters()
-        self.start_engine(engine_factory)
-        try:
-            self.create_outputs()
-            self.create_inputs()
-            self.start_worker()
-        except BaseException:
-            self.engine.close()
-            raise
-        inp, sync = self.cfg["input"], self.cfg["sync"]
-        info = self.engine.info
-        self.get_logger().info(
-            f"ready: device {info.device}, checkpoint {info.checkpoint}, engine process "
-            f"{info.pid}, input QoS {'reliable' if inp.reliable else 'sensor-data (best effort)'},"
-            f" slop {sync.slop} s")
 
     # -- construction steps ---------------------------------------------------------------
     def setup_parameters(self) -> None:
@@ -192,10 +167,6 @@ class RegisterNode(Node):
         if worker is not None and not finished:
             worker.stop(5.0)
         return finished
-
-    def destroy_node(self) -> None:
-        self.close()
-        super().destroy_node()
 
     # -- parameters -----------------------------------------------------------------------
     def _coerce_parameters(self, params: list[Parameter]) -> list[Parameter]:
@@ -324,3 +295,41 @@ class RegisterNode(Node):
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
+
+
+class RegisterNode(RegistrationNodeMixin, Node):
+    """Pairs the two cloud topics, runs the engine in its own process, publishes results.
+
+    Args:
+        engine_factory: builds the engine from (preprocess, engine) settings; the default is
+            :class:`EngineProcess` with the real Registrar. Tests pass stand-ins.
+        node_name: the node's name (``register_node``).
+        **node_kwargs: passed to rclpy's Node (``parameter_overrides``, ``context``, ...).
+
+    Raises:
+        cegc_ros.node.params.ParameterError: a parameter value is unacceptable.
+        cegc_ros.node.engine_process.EngineStartError: the engine did not start.
+    """
+
+    def __init__(self, engine_factory: EngineFactory | None = None,
+                 node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self.setup_parameters()
+        self.start_engine(engine_factory)
+        try:
+            self.create_outputs()
+            self.create_inputs()
+            self.start_worker()
+        except BaseException:
+            self.engine.close()
+            raise
+        inp, sync = self.cfg["input"], self.cfg["sync"]
+        info = self.engine.info
+        self.get_logger().info(
+            f"ready: device {info.device}, checkpoint {info.checkpoint}, engine process "
+            f"{info.pid}, input QoS {'reliable' if inp.reliable else 'sensor-data (best effort)'},"
+            f" slop {sync.slop} s")
+
+    def destroy_node(self) -> None:
+        self.close()
+        super().destroy_node()
