@@ -242,16 +242,35 @@ def test_rejected_cloud_leaves_the_odometry_untouched():
     r = odo.feed(5 * S // 10, w.cloud(pose(180.0, (-2.5, -2.5, 1.0))))
     assert not r.accepted and r.method == "none" and r.T_odom_cloud is None
     assert "global fitness" in r.reason and odo.stats.rejected == 1
-    after = (odo.pose, odo.keyframe.stamp_ns, odo.keyframe.T_odom_keyframe, len(odo.path),
-             odo.stats.keyframes)
-    np.testing.assert_array_equal(before[0], after[0])
-    assert before[1] == after[1] and before[3:] == after[3:]
-    np.testing.assert_array_equal(before[2], after[2])
+    # Pose and path are untouched; the keyframe moved on to the last accepted cloud (stamp 4),
+    # whose pose is the last one on the path.
+    np.testing.assert_array_equal(odo.pose, before[0])
+    assert len(odo.path) == before[3]
+    assert odo.keyframe.stamp_ns == 4 * S // 10 != before[1]
+    np.testing.assert_array_equal(odo.keyframe.T_odom_keyframe, odo.path[-1][1])
     # The next good cloud is tracked against the same keyframe, across the skipped stamp.
     for k in (6, 7):
         r = odo.feed(k * S // 10, w.cloud(poses[k]))
         truth = np.linalg.inv(poses[0]) @ poses[k]
         assert r.method == "icp"
+        assert np.linalg.norm(r.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
+
+
+def test_tracking_falls_back_to_the_last_cloud_before_global_registration():
+    w = World(max_range=3.5)
+    # The keyframe never changes on its own (no overlap or motion rule): the view turns away
+    # from it until tracking against it fails; the last cloud then becomes the keyframe.
+    odo = KeyframeOdometry(cfg(keyframe_min_overlap=0.0, keyframe_max_translation=100.0,
+                               keyframe_max_rotation=180.0), w.oracle)
+    poses = straight_run(20, 0.05, 8.0)                              # turning 8 deg a cloud
+    results = [odo.feed(k * S // 10, w.cloud(T)) for k, T in enumerate(poses)]
+    promoted = [k for k, r in enumerate(results) if "became the keyframe" in r.reason]
+    assert promoted, [round(r.fitness, 2) for r in results]
+    k = promoted[0]
+    assert results[k].method == "icp" and results[k].keyframe_stamp_ns == (k - 1) * S // 10
+    assert w.calls == 0 and odo.stats.rejected == 0
+    for r, T in zip(results, poses):
+        truth = np.linalg.inv(poses[0]) @ T
         assert np.linalg.norm(r.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
 
 

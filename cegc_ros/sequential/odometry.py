@@ -9,9 +9,11 @@ first keyframe):
 2. track: point-to-plane ICP from the prediction on the voxelized clouds, with the prediction
    as a weak prior (:mod:`cegc_ros.sequential.icp`), accepted when its fitness reaches
    ``min_fitness``; when it does not, once more without the prior, from where it stopped;
-3. recover (only when tracking is not accepted: the first frames' motion, fast motion, dropped
-   frames, a kidnapped sensor): the injected global registration (``Registrar.register`` or any
-   callable with its signature), refined and checked by the same ICP and fitness test;
+3. recover (only when tracking is not accepted: fast motion, dropped frames, a kidnapped
+   sensor): first the last accepted cloud, when newer, becomes the keyframe and tracking is
+   tried against it (the freshest view shares the most with this one); then the injected
+   global registration (``Registrar.register`` or any callable with its signature) against the
+   keyframe, refined and checked by the same ICP and fitness test;
 4. chain: ``T_odom_cloud = T_odom_keyframe @ T_keyframe_cloud``, covariance propagated along the
    keyframe chain (:func:`cegc_ros.sequential.se3.compose_covariance`);
 5. keyframe: the cloud becomes the keyframe when fitness or overlap falls below
@@ -19,8 +21,9 @@ first keyframe):
    ``keyframe_max_rotation`` from the keyframe.
 
 A cloud that neither step 2 nor step 3 can register is rejected: counted, reported, and the
-state (keyframe, pose, velocity, path) is left as it was, so the next cloud is tried against the
-same keyframe. Not thread-safe: feed it from one thread.
+pose, velocity and path are left as they were (the keyframe may have moved on to the last
+accepted cloud, itself registered), so the next cloud is tried against that keyframe.
+Not thread-safe: feed it from one thread.
 """
 
 from __future__ import annotations
@@ -101,7 +104,8 @@ class OdometryStats:
 
 @dataclass
 class Keyframe:
-    """The cloud the next ones are registered against."""
+    """A registered cloud: the keyframe the next ones are registered against, or the last
+    accepted cloud (which becomes the keyframe when tracking against the keyframe fails)."""
 
     stamp_ns: int
     T_odom_keyframe: np.ndarray          # (4, 4)
@@ -144,6 +148,7 @@ class KeyframeOdometry:
         """Forget everything: the next cloud starts a new odometry frame."""
         self.stats = OdometryStats()
         self.keyframe: Keyframe | None = None
+        self._last: Keyframe | None = None                               # last accepted cloud
         self._accepted: deque[tuple[int, np.ndarray]] = deque(maxlen=2)   # (stamp, T_odom_cloud)
         self._last_stamp: int | None = None
         self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=self.config.path_length)
@@ -154,10 +159,10 @@ class KeyframeOdometry:
         self.config = copy.deepcopy(config)
         if config.path_length != old.path_length:
             self._path = deque(self._path, maxlen=config.path_length)
-        if self.keyframe is not None and (config.voxel_size, config.max_range) != (
-                old.voxel_size, old.max_range):
-            self.keyframe.prepared = icp_stage.prepare_cloud(
-                self._in_range(self.keyframe.cloud), config.voxel_size)
+        if (config.voxel_size, config.max_range) != (old.voxel_size, old.max_range):
+            for cloud in {id(c): c for c in (self.keyframe, self._last) if c}.values():
+                cloud.prepared = icp_stage.prepare_cloud(self._in_range(cloud.cloud),
+                                                         config.voxel_size)
 
     @property
     def pose(self) -> np.ndarray | None:
@@ -202,15 +207,16 @@ class KeyframeOdometry:
 
         if self.keyframe is None:
             T0, cov0 = np.eye(4), np.zeros((6, 6))
-            self._take_keyframe(stamp_ns, T0, cov0, points, prepared)
-            self._advance(stamp_ns, T0)
+            self._advance(Keyframe(stamp_ns, T0, cov0, points, prepared))
+            self._take_keyframe()
             timings["total"] = time.perf_counter() - t0
             return FrameResult(stamp_ns, True, "first", T0.copy(), cov0.copy(), np.eye(4),
                                np.zeros((6, 6)), stamp_ns, True, 1.0, 1.0, "first cloud",
                                timings=timings)
 
-        kf = self.keyframe
         attempt = self._register(stamp_ns, points, prepared, timings)
+        kf = self.keyframe                      # the one registered against (maybe promoted)
+        assert kf is not None
         if attempt.method == "none":
             self.stats.rejected += 1
             timings["total"] = time.perf_counter() - t0
@@ -233,9 +239,9 @@ class KeyframeOdometry:
             # A recovery follows a gap or a jump: the motion across it says nothing about the
             # velocity now, so the next prediction starts from rest.
             self._accepted.clear()
-        self._advance(stamp_ns, T_odom_cloud)
+        self._advance(Keyframe(stamp_ns, T_odom_cloud, cov, points, prepared))
         if why_keyframe:
-            self._take_keyframe(stamp_ns, T_odom_cloud, cov, points, prepared)
+            self._take_keyframe()
         timings["total"] = time.perf_counter() - t0
         reason = "; ".join(r for r in (attempt.reason, why_keyframe) if r)
         return FrameResult(stamp_ns, True, attempt.method, T_odom_cloud, cov, T_kf_cloud.copy(),
@@ -260,20 +266,26 @@ class KeyframeOdometry:
 
     def _register(self, stamp_ns: int, points: np.ndarray, prepared: icp_stage.PreparedCloud,
                   timings: dict[str, float]) -> _Registration:
-        """Track from the prediction; when that is not accepted, recover globally."""
-        cfg, kf = self.config, self.keyframe
-        assert kf is not None
+        """Track from the prediction; when that fails and the last accepted cloud is newer
+        than the keyframe, make it the keyframe and track again; then recover globally."""
+        cfg = self.config
         t0 = time.perf_counter()
-        T_guess = np.linalg.inv(kf.T_odom_keyframe) @ self.predict(stamp_ns)
-        tracked = self._icp(prepared, T_guess)
-        if tracked.fitness < cfg.min_fitness and cfg.icp_prior > 0:
-            # The prior held a direction the data do constrain (a poor prediction along a
-            # weakly seen direction): let the data alone finish from there.
-            tracked = self._icp(prepared, tracked.T_target_source, prior=0.0)
+        tracked = self._track(stamp_ns, prepared)
+        why = ""
+        if tracked.fitness < cfg.min_fitness and self._last is not self.keyframe:
+            # The freshest registered view shares the most with this cloud (a gap, a fast
+            # turn): it becomes the keyframe, for tracking and for global registration.
+            why = (f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}; "
+                   "the last registered cloud became the keyframe")
+            self._take_keyframe()
+            tracked = self._track(stamp_ns, prepared)
         timings["icp"] = time.perf_counter() - t0
         if tracked.fitness >= cfg.min_fitness:
-            return _Registration("icp", tracked)
-        why = f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}"
+            return _Registration("icp", tracked, reason=why)
+        failed = f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}"
+        why = f"{why}; then {failed}" if why else failed
+        kf = self.keyframe
+        assert kf is not None
         if self.global_registration is None:
             return _Registration("none", tracked, reason=f"{why}; no global registration")
         t1 = time.perf_counter()
@@ -294,6 +306,18 @@ class KeyframeOdometry:
         return _Registration("none", recovered, result,
                              f"{why}; global fitness {recovered.fitness:.2f} < "
                              f"{cfg.min_fitness:.2f}")
+
+    def _track(self, stamp_ns: int, prepared: icp_stage.PreparedCloud) -> icp_stage.IcpResult:
+        """ICP against the keyframe from the constant-velocity prediction."""
+        kf = self.keyframe
+        assert kf is not None
+        T_guess = np.linalg.inv(kf.T_odom_keyframe) @ self.predict(stamp_ns)
+        tracked = self._icp(prepared, T_guess)
+        if tracked.fitness < self.config.min_fitness and self.config.icp_prior > 0:
+            # The prior held a direction the data do constrain (a poor prediction along a
+            # weakly seen direction): let the data alone finish from there.
+            tracked = self._icp(prepared, tracked.T_target_source, prior=0.0)
+        return tracked
 
     def _in_range(self, points: np.ndarray) -> np.ndarray:
         """The points within ``max_range`` of the sensor (all when it is 0)."""
@@ -323,11 +347,13 @@ class KeyframeOdometry:
             return f"keyframe: turned {angle:.1f} deg > {cfg.keyframe_max_rotation:.1f} deg"
         return ""
 
-    def _take_keyframe(self, stamp_ns: int, T_odom: np.ndarray, cov: np.ndarray,
-                       points: np.ndarray, prepared: icp_stage.PreparedCloud) -> None:
-        self.keyframe = Keyframe(stamp_ns, T_odom.copy(), cov.copy(), points, prepared)
+    def _take_keyframe(self) -> None:
+        """The last accepted cloud becomes the keyframe."""
+        self.keyframe = self._last
         self.stats.keyframes += 1
 
-    def _advance(self, stamp_ns: int, T_odom_cloud: np.ndarray) -> None:
-        self._accepted.append((stamp_ns, T_odom_cloud.copy()))
-        self._path.append((stamp_ns, T_odom_cloud.copy()))
+    def _advance(self, cloud: Keyframe) -> None:
+        """Record an accepted cloud: last cloud, velocity history, path."""
+        self._last = cloud
+        self._accepted.append((cloud.stamp_ns, cloud.T_odom_keyframe.copy()))
+        self._path.append((cloud.stamp_ns, cloud.T_odom_keyframe.copy()))

@@ -295,27 +295,31 @@ def _fmt(x: Any, digits: int = 3) -> str:
 def report_markdown(summary: dict[str, Any]) -> str:
     rows = summary["methods"]
     lengths = summary["rpe_lengths"]
-    head = ["method", "ATE first (m)", "ATE aligned (m)", "max (m)", "rot (deg)", "coverage"]
+    head = ["method", "ATE first (mm)", "ATE aligned (mm)", "max (mm)", "rot err (deg)",
+            "coverage"]
     head += [f"RPE {L:g} m (%, deg/m)" for L in lengths]
-    head += ["step (m, deg)", "keyframes", "recoveries", "rejected", "median ms", "p95 ms"]
+    head += ["step (mm, deg)", "keyframes", "recoveries", "rejected", "median ms", "p95 ms"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if r["skipped"]:
             lines.append(f"| {r['method']} | skipped: {r['skipped']} |" + " |" * (len(head) - 2))
             continue
         a, s, lat = r["ate"], r["step"], r["latency_ms"]
-        cells = [r["method"], _fmt(a["rmse_first"]), _fmt(a["rmse_aligned"]),
-                 _fmt(a["max_first"]), _fmt(a["rot_first"], 2), _fmt(a["coverage"], 2)]
+        mm = {k: a[k] * 1000.0 for k in ("rmse_first", "rmse_aligned", "max_first")}
+        cells = [r["method"], _fmt(mm["rmse_first"], 1), _fmt(mm["rmse_aligned"], 1),
+                 _fmt(mm["max_first"], 1), _fmt(a["rot_first"], 2), _fmt(a["coverage"], 2)]
         for L in lengths:
             e = r["rpe"][f"{L:g}"]
             cells.append(f"{_fmt(e['trans_pct'], 1)}, {_fmt(e['rot_deg_per_m'], 2)}")
-        cells += [f"{_fmt(s['trans_mean'])}, {_fmt(s['rot_mean'], 2)}", r["keyframes"],
+        cells += [f"{_fmt(s['trans_mean'] * 1000.0, 1)}, {_fmt(s['rot_mean'], 2)}", r["keyframes"],
                   r["recoveries"], r["rejected"], _fmt(lat["median"], 0), _fmt(lat["p95"], 0)]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     info = summary["sequence"]
     text = [f"# cegc-eval-seq: {info['name']}", "",
             (f"{info['clouds']} clouds, ground-truth path {info['path_length_m']:.2f} m; "
-             "ATE 'first' from the first frame, 'aligned' after SE(3) alignment."), "",
+              "ATE (RMS position error) 'first' from the first frame, 'aligned' after SE(3) "
+             "alignment; rot err: mean rotation error from the first frame; coverage: share "
+             "of clouds with a pose."), "",
             *lines, "", f"Command: `{summary['command']}`", "",
             f"Machine: {summary['machine']}", ""]
     return "\n".join(text)
