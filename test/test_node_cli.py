@@ -89,3 +89,16 @@ def test_replay_errors_are_one_line(args, code, expected):
     out = _run("-m", "cegc_ros.tools.replay", *args)
     assert out.returncode == code
     assert _lines(out) == [expected]
+
+
+@pytest.mark.parametrize("module, args, expected", [
+    ("cegc_ros.tools.bench_contention", ["--settings", "turbo"],
+     "bench_contention: error: unknown setting 'turbo'; known: default, omp1, passive, "
+     "omp1_o3d1, passive_o3d1 (see --help)"),
+    ("cegc_ros.tools.bench_node", ["--pairs", "many"],
+     "bench_node: error: argument --pairs: invalid int value: 'many' (see --help)"),
+])
+def test_benchmark_usage_errors_are_one_line(module, args, expected):
+    out = _run("-m", module, *args)
+    assert out.returncode == 2
+    assert _lines(out) == [expected]

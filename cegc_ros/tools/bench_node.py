@@ -1,7 +1,7 @@
 """Benchmark of register_node over real DDS (a script, not a test).
 
     python -m cegc_ros.tools.bench_node [--pairs 20] [--checkpoint PATH] [--rates 1,2,3]
-        [--rate-pairs 16] [--responsiveness 300000,1000000,5000000]
+        [--rate-pairs 16] [--responsiveness 300000,1000000,5000000] [--repeats 1]
         [--memory-minutes 10] [--memory-sizes 1500,20000,300000] [--skip latency,rate]
         [--out bench.json]
 
@@ -321,7 +321,7 @@ def bench_responsiveness(args: Any, env: dict[str, str], pairs: list[Any],
                      extra=("-p", "diagnostics.period:=0.5"))
         try:
             c = node.client
-            for k, n in enumerate(sizes):
+            for k, n in enumerate(sizes * args.repeats):
                 p = pairs[k % len(pairs)]
                 (src, tgt), = _messages([(densify(p.source, n, 1), densify(p.target, n, 2))])
                 stamp = (20_000 + k) * SEC
@@ -442,13 +442,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip", default="", help="comma-separated: latency, rate")
     ap.add_argument("--responsiveness", default="",
                     help="comma-separated cloud sizes for the responsiveness section")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="responsiveness: pairs per size (the sizes cycle)")
     ap.add_argument("--pair-timeout", type=float, default=600.0,
                     help="responsiveness: give up on a pose after this many seconds")
     ap.add_argument("--memory-minutes", type=float, default=0.0,
                     help="length of the memory section (0: skip it)")
     ap.add_argument("--memory-sizes", default="1500,20000,300000")
+    ap.add_argument("--replay-seconds", type=float, default=0.0,
+                    help="older spelling of --memory-minutes, in seconds")
     ap.add_argument("--out", help="write the figures as JSON here")
     args = ap.parse_args(argv)
+    if args.replay_seconds and not args.memory_minutes:
+        args.memory_minutes = args.replay_seconds / 60.0
     env = _env()
     skip = {s for s in args.skip.split(",") if s}
 
