@@ -203,6 +203,11 @@ class SequentialConfig:
         "this share of the cloud's voxels lies within inlier_distance of the keyframe; below it "
         "ICP hands over to global registration, and a rejected global answer skips the cloud "
         "(counted; the odometry is unchanged).", 0.0, 1.0))
+    gap_intervals: float = field(default=3.0, metadata=_meta(
+        "A cloud arriving more than this many frame intervals (the median of the recent ones) "
+        "after the last registered cloud is registered globally first, and tracked only if "
+        "that fails: across dropped frames the constant-velocity guess is not trusted. 0 "
+        "always tracks first.", 0.0, 1000.0))
     keyframe_min_overlap: float = field(default=0.7, metadata=_meta(
         "A new keyframe is taken when the fitness, or the overlap (share of the keyframe's "
         "voxels within inlier_distance of the aligned cloud), falls below this.", 0.0, 1.0))

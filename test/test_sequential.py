@@ -119,8 +119,8 @@ def test_drift_on_a_rendered_sequence_is_bounded(robot_sequence):
 def test_recovery_after_dropped_frames_uses_the_real_engine(robot_sequence):
     from cegc_ros.engine import Registrar
 
-    # Frames 15..29 are lost (1.5 s): the constant-velocity guess is far off, ICP cannot pull it
-    # in, the CEGC engine registers the cloud against the keyframe.
+    # Frames 15..29 are lost (1.5 s): the constant-velocity guess is not trusted across the
+    # gap; the CEGC engine registers the cloud against the last registered one.
     keep = [k for k in range(40) if not 15 <= k < 30]
     seq = robot_sequence.subset(keep)
     gt = seq.relative_poses()
@@ -129,7 +129,7 @@ def test_recovery_after_dropped_frames_uses_the_real_engine(robot_sequence):
     results = [odo.feed(s, c) for s, c in zip(seq.stamps_ns, seq.clouds)]
     after_gap = results[keep.index(30)]
     assert after_gap.method == "global", after_gap.reason
-    assert "tracking fitness" in after_gap.reason
+    assert after_gap.reason.startswith("gap of 1.60 s")
     assert after_gap.registration is not None and after_gap.registration.valid
     T, G = after_gap.T_odom_cloud, gt[keep.index(30)]
     assert np.linalg.norm(T[:3, 3] - G[:3, 3]) < 0.05            # measured 1.9 cm
@@ -272,6 +272,37 @@ def test_tracking_falls_back_to_the_last_cloud_before_global_registration():
     for r, T in zip(results, poses):
         truth = np.linalg.inv(poses[0]) @ T
         assert np.linalg.norm(r.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
+
+
+@pytest.mark.parametrize("gap_intervals,first", [(3.0, "global"), (0.0, "icp")])
+def test_after_a_gap_global_registration_comes_first(gap_intervals, first):
+    w = World()
+    odo = KeyframeOdometry(cfg(gap_intervals=gap_intervals), w.oracle)
+    poses = straight_run(12, 0.02, 0.5)                             # slow: ICP could track
+    stamps = [k * S // 10 for k in range(5)] + [k * S // 10 for k in range(8, 15)]
+    results = [odo.feed(s, w.cloud(T)) for s, T in zip(stamps, poses)]
+    # The 0.4 s step after 0.1 s ones is a gap for gap_intervals 3, not for 0 (never).
+    assert results[5].method == first
+    assert ("gap of 0.40 s" in results[5].reason) == (first == "global")
+    assert w.calls == (1 if first == "global" else 0)
+    assert all(r.method == "icp" for r in results[6:])
+    for r, T in zip(results, poses):
+        truth = np.linalg.inv(poses[0]) @ T
+        assert np.linalg.norm(r.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
+
+
+def test_after_a_gap_a_failed_global_registration_falls_back_to_tracking():
+    w = World()
+
+    def invalid(source, target):
+        return Result(np.eye(4), False, "no consensus")
+
+    odo = KeyframeOdometry(SequentialConfig(), invalid)
+    poses = straight_run(7, 0.02, 0.5)
+    stamps = [0, S // 10, 2 * S // 10, 3 * S // 10, 9 * S // 10, S, 11 * S // 10]
+    results = [odo.feed(s, w.cloud(T)) for s, T in zip(stamps, poses)]
+    assert results[4].method == "icp" and "no consensus" in results[4].reason
+    assert odo.stats.rejected == 0 and odo.stats.recoveries == 0
 
 
 @pytest.mark.parametrize("failure", ["invalid", "raises", "absent"])

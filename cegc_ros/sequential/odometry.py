@@ -9,11 +9,13 @@ first keyframe):
 2. track: point-to-plane ICP from the prediction on the voxelized clouds, with the prediction
    as a weak prior (:mod:`cegc_ros.sequential.icp`), accepted when its fitness reaches
    ``min_fitness``; when it does not, once more without the prior, from where it stopped;
-3. recover (only when tracking is not accepted: fast motion, dropped frames, a kidnapped
-   sensor): first the last accepted cloud, when newer, becomes the keyframe and tracking is
-   tried against it (the freshest view shares the most with this one); then the injected
-   global registration (``Registrar.register`` or any callable with its signature) against the
-   keyframe, refined and checked by the same ICP and fitness test;
+3. recover (only when tracking is not accepted: fast motion, a kidnapped sensor): first the
+   last accepted cloud, when newer, becomes the keyframe and tracking is tried against it (the
+   freshest view shares the most with this one); then the injected global registration
+   (``Registrar.register`` or any callable with its signature) against the keyframe, refined
+   and checked by the same ICP and fitness test. After a gap (dropped frames: more than
+   ``gap_intervals`` frame intervals since the last accepted cloud) the constant-velocity
+   guess is not trusted: global registration comes first, tracking only if it fails;
 4. chain: ``T_odom_cloud = T_odom_keyframe @ T_keyframe_cloud``, covariance propagated along the
    keyframe chain (:func:`cegc_ros.sequential.se3.compose_covariance`);
 5. keyframe: the cloud becomes the keyframe when fitness or overlap falls below
@@ -151,6 +153,7 @@ class KeyframeOdometry:
         self._last: Keyframe | None = None                               # last accepted cloud
         self._accepted: deque[tuple[int, np.ndarray]] = deque(maxlen=2)   # (stamp, T_odom_cloud)
         self._last_stamp: int | None = None
+        self._intervals: deque[int] = deque(maxlen=16)     # stamp steps between usable clouds
         self._path: deque[tuple[int, np.ndarray]] = deque(maxlen=self.config.path_length)
 
     def update(self, config: SequentialConfig) -> None:
@@ -202,6 +205,9 @@ class KeyframeOdometry:
             self.stats.invalid += 1
             raise
         timings = {"prepare": time.perf_counter() - t0}
+        gap = self._gap(stamp_ns)
+        if self._last_stamp is not None:
+            self._intervals.append(stamp_ns - self._last_stamp)
         self._last_stamp = stamp_ns
         self.stats.frames += 1
 
@@ -214,7 +220,7 @@ class KeyframeOdometry:
                                np.zeros((6, 6)), stamp_ns, True, 1.0, 1.0, "first cloud",
                                timings=timings)
 
-        attempt = self._register(stamp_ns, points, prepared, timings)
+        attempt = self._register(stamp_ns, points, prepared, gap, timings)
         kf = self.keyframe                      # the one registered against (maybe promoted)
         assert kf is not None
         if attempt.method == "none":
@@ -264,48 +270,79 @@ class KeyframeOdometry:
         ratio = (stamp_ns - s1) / max(s1 - s0, 1)
         return T1 @ scale_motion(np.linalg.inv(T0) @ T1, ratio)
 
+    def _gap(self, stamp_ns: int) -> str:
+        """Why ``stamp_ns`` comes after a gap ("" when it does not): more than ``gap_intervals``
+        frame intervals (the median of the recent ones) since the last accepted cloud."""
+        factor = self.config.gap_intervals
+        if factor <= 0 or self._last is None or not self._intervals:
+            return ""
+        interval = float(np.median(self._intervals))
+        since = stamp_ns - self._last.stamp_ns
+        if since <= factor * interval:
+            return ""
+        return (f"gap of {since / 1e9:.2f} s since the last registered cloud "
+                f"(> {factor:g} x {interval / 1e9:.3f} s)")
+
     def _register(self, stamp_ns: int, points: np.ndarray, prepared: icp_stage.PreparedCloud,
-                  timings: dict[str, float]) -> _Registration:
-        """Track from the prediction; when that fails and the last accepted cloud is newer
-        than the keyframe, make it the keyframe and track again; then recover globally."""
+                  gap: str, timings: dict[str, float]) -> _Registration:
+        """Track from the prediction, then (tracking failed) against the last accepted cloud
+        made the keyframe, then recover globally; after a gap, global registration first."""
         cfg = self.config
+        notes: list[str] = []
+        if gap and self.global_registration is not None:
+            notes.append(gap)
+            self._promote(notes)
+            found = self._recover(points, prepared, notes, timings)
+            if found.method != "none":
+                return found
         t0 = time.perf_counter()
         tracked = self._track(stamp_ns, prepared)
-        why = ""
         if tracked.fitness < cfg.min_fitness and self._last is not self.keyframe:
-            # The freshest registered view shares the most with this cloud (a gap, a fast
-            # turn): it becomes the keyframe, for tracking and for global registration.
-            why = (f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}; "
-                   "the last registered cloud became the keyframe")
-            self._take_keyframe()
+            notes.append(f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}")
+            self._promote(notes)
             tracked = self._track(stamp_ns, prepared)
         timings["icp"] = time.perf_counter() - t0
         if tracked.fitness >= cfg.min_fitness:
-            return _Registration("icp", tracked, reason=why)
-        failed = f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}"
-        why = f"{why}; then {failed}" if why else failed
-        kf = self.keyframe
+            return _Registration("icp", tracked, reason="; ".join(notes))
+        notes.append(f"tracking fitness {tracked.fitness:.2f} < {cfg.min_fitness:.2f}")
+        if gap and self.global_registration is not None:     # global already tried, first
+            return _Registration("none", tracked, reason="; ".join(notes))
+        return self._recover(points, prepared, notes, timings, tracked)
+
+    def _promote(self, notes: list[str]) -> None:
+        """The last accepted cloud, when newer than the keyframe, becomes the keyframe: the
+        freshest registered view shares the most with the next cloud (a gap, a fast turn)."""
+        if self._last is not self.keyframe:
+            self._take_keyframe()
+            notes.append("the last registered cloud became the keyframe")
+
+    def _recover(self, points: np.ndarray, prepared: icp_stage.PreparedCloud, notes: list[str],
+                 timings: dict[str, float],
+                 tracked: icp_stage.IcpResult | None = None) -> _Registration:
+        """Global registration against the keyframe, refined and checked by ICP."""
+        cfg, kf = self.config, self.keyframe
         assert kf is not None
         if self.global_registration is None:
-            return _Registration("none", tracked, reason=f"{why}; no global registration")
+            return _Registration("none", tracked,
+                                 reason="; ".join([*notes, "no global registration"]))
         t1 = time.perf_counter()
         try:
             result = self.global_registration(points, kf.cloud)
         except ValueError as err:
             timings["global"] = time.perf_counter() - t1
-            return _Registration("none", tracked, reason=f"{why}; global registration: {err}")
+            notes.append(f"global registration: {err}")
+            return _Registration("none", tracked, reason="; ".join(notes))
         if not getattr(result, "valid", False):
             timings["global"] = time.perf_counter() - t1
-            return _Registration("none", tracked, result,
-                                 f"{why}; global registration invalid: {result.reason}")
+            notes.append(f"global registration invalid: {result.reason}")
+            return _Registration("none", tracked, result, "; ".join(notes))
         # The engine's answer is no motion prediction to hold on to: plain ICP from it.
         recovered = self._icp(prepared, np.asarray(result.T_target_source, np.float64), prior=0.0)
         timings["global"] = time.perf_counter() - t1
         if recovered.fitness >= cfg.min_fitness:
-            return _Registration("global", recovered, result, why)
-        return _Registration("none", recovered, result,
-                             f"{why}; global fitness {recovered.fitness:.2f} < "
-                             f"{cfg.min_fitness:.2f}")
+            return _Registration("global", recovered, result, "; ".join(notes))
+        notes.append(f"global fitness {recovered.fitness:.2f} < {cfg.min_fitness:.2f}")
+        return _Registration("none", recovered, result, "; ".join(notes))
 
     def _track(self, stamp_ns: int, prepared: icp_stage.PreparedCloud) -> icp_stage.IcpResult:
         """ICP against the keyframe from the constant-velocity prediction."""
