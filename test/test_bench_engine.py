@@ -28,7 +28,7 @@ def test_worker_reports_stage_percentiles_and_memory(tmp_path):
     assert B.make_pairs(1500, 1, tmp_path) == files                       # cached, not regenerated
     r = B.worker("sc2pcr", [str(f) for f in files], repeats=2)
     assert r["runs"] == 2 and r["points"] == 1536
-    for key in ("features", "registration", "total", "wall"):
+    for key in ("features", "registration", "total", "wall", "cpu"):
         assert 0 < r["stages"][key]["median_ms"] <= r["stages"][key]["p90_ms"]
     assert r["peak_rss_mb"] >= r["rss_after_loading_mb"] > 10
     assert r["median_rotation_error_deg"] < 5.0                           # same-fragment crops
@@ -48,5 +48,5 @@ def test_allocator_environments_and_bad_arguments(capsys, monkeypatch):
         assert "jemalloc is not installed" in str(err)
     else:
         raise AssertionError("jemalloc without the library must fail")
-    assert B.main(["--methods", "cegc,nope"]) == 2
+    assert B.main(["--methods", "ransac-2threads,nope"]) == 2
     assert "unknown value(s) nope" in capsys.readouterr().err

@@ -16,7 +16,8 @@ Each (size, allocator, method) runs in a fresh subprocess, so that its peak resi
 (``ru_maxrss``) is its own: loaded clouds, torch, Open3D and the registrations together. One
 warm-up registration, then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
 90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
-features / registration). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
+features / registration), and the process's CPU time per registration (all threads; on a
+loaded machine the wall time grows with the load, the CPU time much less). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
 (cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the machine's
 load; ``--json`` keeps every number. ``--threads N`` sets OMP_NUM_THREADS=N in the workers
 (torch and Open3D; 0 keeps the libraries' defaults, as the node does with ``engine.threads: 0``).
@@ -38,6 +39,9 @@ import numpy as np
 
 SIZES = (1500, 20000, 300000, 5000000)
 METHODS = ("cegc", "ransac", "sc2pcr")
+#: Also accepted: RANSAC on 2 Open3D threads (not repeatable, see cegc_ros/baselines.py), to
+#: measure what the one-thread default costs.
+EXTRA_METHODS = ("ransac-2threads",)
 ALLOCATORS = ("jemalloc", "system")
 JITTER = 0.003                           # metres, densification noise
 ENGINE_STAGES = ("bound", "features", "match", "estimate", "refine", "verify")
@@ -109,21 +113,25 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
             return r.T_target_source, r.timings
     else:
         baselines.load_open3d()
+        name, config = method, baselines.BaselineConfig()
+        if method == "ransac-2threads":
+            name, config.ransac_threads = "ransac", 2
 
         def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
-            r = baselines.register(method, src, tgt)
+            r = baselines.register(name, src, tgt, config)
             return r.T_target_source, r.timings
     run(clouds[0][0], clouds[0][1])                          # warm-up: lazy imports, first kernels
     timings: dict[str, list[float]] = {}
     errors = []
     for _ in range(repeats):
         for src, tgt, T in clouds:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             T_est, stages = run(src, tgt)
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             for k, v in stages.items():
                 timings.setdefault(k, []).append(v)
             timings.setdefault("wall", []).append(wall)
+            timings.setdefault("cpu", []).append(cpu)         # CPU time of all threads
             errors.append(float(rotation_error_deg(T[:3, :3], T_est[:3, :3])))
     return {
         "method": method, "points": len(clouds[0][0]), "runs": len(timings["wall"]),
@@ -180,7 +188,7 @@ def run_one(method: str, files: list[Path], repeats: int, allocator: str, thread
 def table(results: list[dict[str, Any]]) -> str:
     """Markdown: one row per (size, allocator, method)."""
     head = ("| input points | allocator | method | total median ms | total p90 ms | "
-            + " | ".join(f"{s} ms" for s in ENGINE_STAGES) + " | peak RSS MB | median Error(R) deg |")
+            + " | ".join(f"{s} ms" for s in ENGINE_STAGES) + " | CPU ms | peak RSS MB | median Error(R) deg |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in results:
         st = r["stages"]
@@ -189,6 +197,7 @@ def table(results: list[dict[str, Any]]) -> str:
             peer = {"features": "features", "estimate": "registration", "refine": "refine"}
             key = s if r["method"] == "cegc" else peer.get(s)
             cells.append(f"{st[key]['median_ms']:.0f} / {st[key]['p90_ms']:.0f}" if key in st else "-")
+        cells.append(f"{st['cpu']['median_ms']:.0f}" if "cpu" in st else "-")
         lines.append(f"| {r['points']:,} | {r['allocator']} | {r['method']} | "
                      f"{st['total']['median_ms']:.0f} | {st['total']['p90_ms']:.0f} | "
                      + " | ".join(cells) + f" | {r['peak_rss_mb']:.0f} | {r['median_rotation_error_deg']:.2f} |")
@@ -223,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         sizes = _csv(args.sizes, int)
-        methods = _csv(args.methods, str, METHODS)
+        methods = _csv(args.methods, str, METHODS + EXTRA_METHODS)
         allocators = _csv(args.allocators, str, ALLOCATORS)
         if not sizes or min(sizes) < 64 or args.pairs < 1 or args.repeats < 1:
             raise BenchError("--sizes must be >= 64 points, --pairs and --repeats >= 1")
