@@ -3,7 +3,9 @@
 A *mode* is the small object the node holds to turn incoming clouds into registration jobs:
 it names the topics it reads (``inputs``: side -> relative topic), takes each message
 (:meth:`offer`), says what it produced (an :class:`Offer`: a job and/or clouds it gave up
-on) and hears about each result (:meth:`on_result`). The node does the rest (counting,
+on) and hears about each result (:meth:`on_result`); it adds its own outputs
+(:meth:`create_outputs`), builds the worker that runs its jobs (:meth:`make_worker`) and its
+/diagnostics key-values (:meth:`diagnostics`). cegc_ros/node/sequential_mode.py is the other. The node does the rest (counting,
 the mailbox, the engine, publishing), so another mode sits beside this one without a branch
 through the node.
 """
@@ -72,3 +74,18 @@ class PairsMode:
     def reset(self) -> None:
         """Forget the clouds still waiting for a partner."""
         self.pairer.flush()
+
+    def create_outputs(self, node: Any) -> None:
+        """The node's common outputs are all this mode publishes."""
+
+    def make_worker(self, node: Any) -> Any:
+        """The worker that registers each pair with the node's engine and publishes it."""
+        from cegc_ros.node.worker import RegistrationWorker   # it imports Job from here
+
+        return RegistrationWorker(node.engine, node.stats, node._log, settings=lambda: node.cfg,
+                                  publish=node.publish_result, on_result=self.on_result,
+                                  info=node.get_logger().info)
+
+    def diagnostics(self, stats: Any) -> dict[str, str]:
+        """No /diagnostics key-values of its own."""
+        return {}

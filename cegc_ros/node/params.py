@@ -24,6 +24,7 @@ SECTIONS: dict[str, type] = {
     "engine": config.EngineConfig,
     "input": config.InputConfig,
     "sync": config.SyncConfig,
+    "sequential": config.SequentialConfig,
     "output": config.OutputConfig,
     "markers": config.MarkersConfig,
     "diagnostics": config.DiagnosticsConfig,
@@ -156,7 +157,8 @@ def usage() -> str:
         "",
         "Registers source_cloud onto target_cloud (sensor_msgs/PointCloud2, paired by stamp)",
         "with CEGC and publishes ~/pose, ~/pose_with_covariance, ~/source_overlap,",
-        "~/target_overlap, ~/markers and /diagnostics.",
+        "~/target_overlap, ~/markers and /diagnostics. With -p sequential.mode:=sequential it",
+        "reads the one topic cloud and also publishes odometry: ~/odometry, ~/path (and /tf).",
         "--print-params writes the parameter file with every default (YAML) to stdout.",
         "",
         ("example: ros2 run cegc_ros register_node --ros-args --params-file "

@@ -33,6 +33,7 @@ from visualization_msgs.msg import MarkerArray
 
 from cegc_ros.node.engine_process import EngineProcess
 from cegc_ros.node.pairs_mode import Job, PairsMode
+from cegc_ros.node.sequential_mode import SequentialMode
 from cegc_ros.node.params import (
     ENGINE_SECTIONS,
     NODE_NAME,
@@ -45,7 +46,6 @@ from cegc_ros.node.params import (
 )
 from cegc_ros.node.stats import NodeStats, Rejected
 from cegc_ros.node.support import ThrottledLog, stamp_ns
-from cegc_ros.node.worker import RegistrationWorker
 from msg_adapters.markers import correspondence_markers
 from msg_adapters.point_cloud2 import xyz_to_cloud
 from msg_adapters.pose import pose_stamped, pose_with_covariance_stamped
@@ -78,8 +78,8 @@ class RegistrationNodeMixin:
     """The register_node behaviour for any rclpy Node class (plain or lifecycle).
 
     Construction steps, in order: :meth:`setup_parameters`, :meth:`start_engine`,
-    :meth:`create_outputs`, :meth:`create_inputs`, :meth:`start_worker`; :meth:`close`
-    undoes the last two and the engine. :class:`RegisterNode` runs them all at once; a managed
+    :meth:`create_mode`, :meth:`create_outputs`, :meth:`create_inputs`, :meth:`start_worker`;
+    :meth:`close` undoes the last two and the engine. :class:`RegisterNode` runs them all at once; a managed
     node can run them from its transitions (and override :meth:`create_outputs` to make
     lifecycle publishers).
     """
@@ -121,6 +121,14 @@ class RegistrationNodeMixin:
         if info.warm_up_error:
             self.get_logger().warning(f"warm-up registration failed: {info.warm_up_error}")
 
+    def create_mode(self) -> None:
+        """The mode ``sequential.mode`` names: pairs (PairsMode) or keyframe odometry
+        (SequentialMode); it holds the state that outlives a managed node's deactivation."""
+        if self.cfg["sequential"].mode == "sequential":
+            self.mode: Any = SequentialMode(self.cfg["sequential"])
+        else:
+            self.mode = PairsMode(self.cfg["sync"])
+
     def create_outputs(self) -> None:
         self.pub_pose = self.create_publisher(PoseStamped, "~/pose", 10)
         self.pub_pose_cov = self.create_publisher(PoseWithCovarianceStamped,
@@ -132,10 +140,10 @@ class RegistrationNodeMixin:
         self._diag_prev = (0, 0)
         self.diag_timer = self.create_timer(self.cfg["diagnostics"].period,
                                             self.publish_diagnostics)
+        self.mode.create_outputs(self)
 
     def create_inputs(self) -> None:
-        """The mode and its subscriptions (one per input of the mode)."""
-        self.mode = PairsMode(self.cfg["sync"])
+        """The subscriptions of the mode (one per input of the mode)."""
         inp = self.cfg["input"]
         reliability = (ReliabilityPolicy.RELIABLE if inp.reliable
                        else qos_profile_sensor_data.reliability)
@@ -148,10 +156,7 @@ class RegistrationNodeMixin:
                        for side, topic in self.mode.inputs.items()]
 
     def start_worker(self) -> None:
-        self.worker = RegistrationWorker(
-            self.engine, self.stats, self._log, settings=lambda: self.cfg,
-            publish=self.publish_result, on_result=self.mode.on_result,
-            info=self.get_logger().info)
+        self.worker = self.mode.make_worker(self)
         self.worker.start()
 
     def close(self, timeout: float = 10.0) -> bool:
@@ -201,10 +206,12 @@ class RegistrationNodeMixin:
             cfg[spec.section] = dataclasses.replace(cfg[spec.section],
                                                     **{spec.field: coerce(spec, p.value)})
             self.cfg = cfg
-            if spec.section in ENGINE_SECTIONS:
-                self.worker.engine_settings_changed()
+            worker = getattr(self, "worker", None)   # a managed node may have none yet
+            if spec.section in ENGINE_SECTIONS and worker is not None:
+                worker.engine_settings_changed()
             self.get_logger().info(f"parameter {p.name} = {p.value!r} (applies to the next pair)")
-        self.mode.configure(self.cfg["sync"])
+        if getattr(self, "mode", None) is not None:
+            self.mode.configure(self.cfg["sync"])
         diag = self.cfg["diagnostics"]
         self._log.period = diag.log_throttle
         self.stats.set_window(diag.window)
@@ -276,7 +283,8 @@ class RegistrationNodeMixin:
         info = self.engine.info
         return self.stats.values({"mode": self.mode.name, "device": info.device,
                                   "checkpoint": info.checkpoint,
-                                  "engine_pid": info.pid if info.pid is not None else "inline"})
+                                  "engine_pid": info.pid if info.pid is not None else "inline",
+                                  **self.mode.diagnostics(self.stats)})
 
     def publish_diagnostics(self) -> None:
         values = self.diagnostics_values()
@@ -317,6 +325,7 @@ class RegisterNode(RegistrationNodeMixin, Node):
         self.setup_parameters()
         self.start_engine(engine_factory)
         try:
+            self.create_mode()
             self.create_outputs()
             self.create_inputs()
             self.start_worker()
