@@ -8,9 +8,10 @@ when jemalloc is installed and not loaded yet, the process re-executes itself on
 ``LD_PRELOAD`` set. Both paths build the variables with :func:`allocator_environment`.
 
 Neither path sets thread counts: torch and Open3D keep their defaults unless the node's
-``engine.threads`` parameter says otherwise.
+``engine.threads`` parameter says otherwise. Both set :data:`THREAD_ENV` (OpenMP threads that
+sleep instead of spinning) unless the user's environment sets those variables already.
 
-``CEGC_NO_JEMALLOC=1`` turns all of this off. Standard library only.
+``CEGC_NO_JEMALLOC=1`` turns jemalloc off. Standard library only.
 """
 
 from __future__ import annotations
@@ -24,6 +25,11 @@ from pathlib import Path
 JEMALLOC_SONAME = "libjemalloc.so.2"
 #: jemalloc keeps freed pages instead of returning them at once (torch reallocates them soon).
 MALLOC_CONF = "dirty_decay_ms:-1"
+#: Environment every cegc_ros process (console scripts, the node's engine process) starts with
+#: unless the user's environment sets the variable already. OpenMP threads that sleep instead
+#: of spinning: beside 1-2 CPU-bound processes on 2 cores the engine took 1.8 / 2.5 s per pair
+#: with it and 8.3 / 10.4 s without (cegc_ros/tools/bench_contention.py; table in docs/node.md).
+THREAD_ENV: dict[str, str] = {"OMP_WAIT_POLICY": "PASSIVE"}
 #: Set in the re-executed process, so that a loader that drops LD_PRELOAD cannot cause a loop.
 _REEXEC_GUARD = "CEGC_ALLOCATOR_REEXEC"
 
@@ -46,8 +52,11 @@ def jemalloc_path() -> str | None:
 
 def allocator_environment(env: dict[str, str], jemalloc: str | None) -> dict[str, str]:
     """``env`` with jemalloc preloaded (``LD_PRELOAD``, ``MALLOC_CONF``) when ``jemalloc`` is a
-    library path and ``CEGC_NO_JEMALLOC`` is not set; a copy, ``env`` itself is not changed."""
+    library path and ``CEGC_NO_JEMALLOC`` is not set, and :data:`THREAD_ENV` where ``env`` does
+    not set those variables; a copy, ``env`` itself is not changed."""
     env = dict(env)
+    for key, value in THREAD_ENV.items():
+        env.setdefault(key, value)
     if not jemalloc or env.get("CEGC_NO_JEMALLOC"):
         return env
     preload = [p for p in env.get("LD_PRELOAD", "").split(":") if p]

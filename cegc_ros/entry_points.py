@@ -5,8 +5,9 @@ node started by ROS gets the same allocator as one started by the bootstrap."""
 from __future__ import annotations
 
 import importlib
+import os
 
-from cegc_ros.allocator import reexec_with_allocator
+from cegc_ros.allocator import THREAD_ENV, reexec_with_allocator
 
 #: console script -> module whose ``main()`` it runs (setup.py builds its entry points from this).
 SCRIPTS = {
@@ -23,6 +24,8 @@ SCRIPTS = {
 
 
 def _run(script: str) -> int:
+    for key, value in THREAD_ENV.items():     # before torch loads OpenMP (also without jemalloc)
+        os.environ.setdefault(key, value)
     reexec_with_allocator()
     return importlib.import_module(SCRIPTS[script]).main()
 

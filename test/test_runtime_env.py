@@ -91,7 +91,7 @@ def test_bootstrap_and_console_scripts_build_the_same_allocator_environment(monk
     assert job["LD_PRELOAD"] == "/lib/libjemalloc.so.2:/lib/other.so"
     assert allocator.allocator_environment(dict(base, CEGC_NO_JEMALLOC="1"),
                                            "/lib/libjemalloc.so.2") == dict(
-        base, CEGC_NO_JEMALLOC="1")
+        base, CEGC_NO_JEMALLOC="1", **allocator.THREAD_ENV)
 
 
 def test_allocator_and_bootstrap_use_only_the_standard_library():
@@ -139,3 +139,16 @@ def test_every_console_script_goes_through_entry_points():
         assert func.__name__ == script.replace("-", "_")
         module = __import__(entry_points.SCRIPTS[script], fromlist=["main"])
         assert callable(module.main)
+
+
+def test_console_scripts_and_bootstrap_jobs_get_sleeping_openmp_threads():
+    """OMP_WAIT_POLICY=PASSIVE under ros2 run / console scripts as under the bootstrap (the
+    contention benchmark's choice), and a user's own setting wins."""
+    from cegc_ros.allocator import THREAD_ENV, allocator_environment
+    assert allocator_environment({}, None)["OMP_WAIT_POLICY"] == "PASSIVE"
+    assert allocator_environment({"OMP_WAIT_POLICY": "ACTIVE"}, "/x/libjemalloc.so.2")["OMP_WAIT_POLICY"] == "ACTIVE"
+    code = "import os, cegc_ros.entry_points as e; e.reexec_with_allocator = lambda: None; " \
+           "e.SCRIPTS['probe'] = 'os'; os.main = lambda: print(os.environ['OMP_WAIT_POLICY']) or 0; e._run('probe')"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == THREAD_ENV["OMP_WAIT_POLICY"]

@@ -44,11 +44,7 @@ import numpy as np
 #: The default engine: "module:function" taking (PreprocessConfig, EngineConfig).
 ENGINE_FACTORY = "cegc_ros.node.engine_process:load_registrar"
 
-#: Environment the engine process starts with unless the user's environment sets the
-#: variable already. OpenMP threads that sleep instead of spinning: beside 1-2 CPU-bound
-#: processes on 2 cores the engine took 1.8 / 2.5 s per pair with it and 8.3 / 10.4 s
-#: without (cegc_ros/tools/bench_contention.py; table in docs/node.md).
-THREAD_ENV: dict[str, str] = {"OMP_WAIT_POLICY": "PASSIVE"}
+from cegc_ros.allocator import THREAD_ENV  # noqa: E402  (the engine process's thread settings)
 
 
 class EngineError(RuntimeError):
