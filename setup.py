@@ -33,6 +33,7 @@ setup(
     entry_points={
         "console_scripts": [
             "register_node = cegc_ros.entry_points:register_node",
+            "register_lifecycle_node = cegc_ros.entry_points:register_lifecycle_node",
             "cegc-register = cegc_ros.entry_points:cegc_register",
             "cegc-demo = cegc_ros.entry_points:cegc_demo",
             "cegc-eval = cegc_ros.entry_points:cegc_eval",

@@ -12,6 +12,7 @@ from cegc_ros.allocator import THREAD_ENV, reexec_with_allocator
 #: console script -> module whose ``main()`` it runs (setup.py builds its entry points from this).
 SCRIPTS = {
     "register_node": "cegc_ros.node",
+    "register_lifecycle_node": "cegc_ros.node.lifecycle_main",
     "cegc-register": "cegc_ros.tools.register_files",
     "cegc-demo": "cegc_ros.tools.demo",
     "cegc-eval": "cegc_ros.tools.evaluate",
@@ -32,6 +33,10 @@ def _run(script: str) -> int:
 
 def register_node() -> int:
     return _run("register_node")
+
+
+def register_lifecycle_node() -> int:
+    return _run("register_lifecycle_node")
 
 
 def cegc_register() -> int:

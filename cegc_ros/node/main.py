@@ -41,16 +41,24 @@ def params_file_problem(argv: Sequence[str]) -> str | None:
     return None
 
 
-def main(args: Sequence[str] | None = None, engine_factory: Any = None) -> int:
-    """Entry point of ``register_node``; returns the process exit code.
+def main(args: Sequence[str] | None = None, engine_factory: Any = None,
+         managed: bool = False) -> int:
+    """Entry point of ``register_node`` (``managed``: ``register_lifecycle_node``); returns the
+    process exit code.
 
     Start-up problems (a parameter value, the params file, the checkpoint, the device) end it
     with one ``[FATAL]`` line and exit code 1; arguments it does not know, with exit code 2.
     ``engine_factory`` replaces the engine process (benchmarks compare an in-process engine).
+    The managed node starts unconfigured (its start-up problems fail the configure transition)
+    and the process ends once it is shut down.
     """
     argv = list(sys.argv if args is None else args)
     own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
     if "-h" in own or "--help" in own:
+        if managed:
+            print("register_lifecycle_node: register_node as a managed (lifecycle) node; it "
+                  "starts unconfigured\n(configure, activate, deactivate, cleanup, shutdown: "
+                  "docs/node.md, 'Managed node').\n")
         print(usage())
         return 0
     if "--print-params" in own:
@@ -83,9 +91,12 @@ def main(args: Sequence[str] | None = None, engine_factory: Any = None) -> int:
     previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     node = executor = None
     try:
-        from cegc_ros.node.ros_node import RegisterNode
+        if managed:
+            from cegc_ros.node.lifecycle_node import RegisterLifecycleNode as node_class
+        else:
+            from cegc_ros.node.ros_node import RegisterNode as node_class
         try:
-            node = RegisterNode(engine_factory)
+            node = node_class(engine_factory)
         except ParameterError as err:
             return fatal(f"invalid parameter: {err}")
         except EngineStartError as err:
@@ -94,7 +105,7 @@ def main(args: Sequence[str] | None = None, engine_factory: Any = None) -> int:
             return fatal(f"{type(err).__name__}: {err}")
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
+        while not stop.is_set() and rclpy.ok() and not getattr(node, "finalized", False):
             try:
                 executor.spin_once(timeout_sec=0.1)
             except ExternalShutdownException:
