@@ -299,11 +299,9 @@ class Trainer:
         if resume:
             self._resume(Path(resume))
         features = cfg.model.features()
-        pairs = val_pairs = None
-        if cfg.data.pair_cache:
-            from .data.pair_cache import PairCache
-            pairs = PairCache(cfg.data.pair_cache)
-            val_pairs = PairCache(cfg.data.val_pair_cache) if cfg.data.val_pair_cache else None
+        from .data.pair_cache import PairCache
+        pairs = PairCache(cfg.data.pair_cache) if cfg.data.pair_cache else None
+        val_pairs = PairCache(cfg.data.val_pair_cache) if cfg.data.val_pair_cache else None
         if fragments is None:
             from .data.protocols import FragmentCache
             fragments = FragmentCache(cfg.data.cache_dir, cfg.data.num_scenes, cfg.data.fragments_per_scene,
@@ -331,7 +329,8 @@ class Trainer:
             self.opt.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
             self.elapsed = float(state["elapsed"])
-            self.best = float(state["best"])
+            # a best score measured on other validation pairs does not compare
+            self.best = float(state["best"]) if state.get("val_key") == self._val_key() else math.inf
             self.warm_start = dict(state.get("warm_start", {}))
         else:
             # Warm start: a new run (its curriculum starts at step 0, the best score afresh, since
@@ -340,13 +339,19 @@ class Trainer:
             self.warm_start = {"from": str(path), "pairs_seen": int(meta.get("pairs_seen", meta.get("step", 0))),
                                "elapsed_minutes": float(meta.get("elapsed_minutes", 0.0))}
 
+    def _val_key(self) -> str:
+        """What the validation set is made of: best scores compare only within one key."""
+        d = self.cfg.data
+        return json.dumps([d.val_pair_cache, d.val_scenes, d.val_fragments_per_scene, d.val_pairs,
+                           d.val_fragments_prob, d.val_resample_prob, d.val_noise_max])
+
     def _save_last(self) -> None:
         if self.rank != 0:
             return
         self.out.mkdir(parents=True, exist_ok=True)
         state = {"format": 1, "model_config": self.cfg.model.to_dict(), "state_dict": self.model.state_dict(),
                  "optimizer": self.opt.state_dict(), "step": self.step, "elapsed": self.elapsed,
-                 "best": self.best, "warm_start": self.warm_start}
+                 "best": self.best, "warm_start": self.warm_start, "val_key": self._val_key()}
         tmp = self.out / "last.pt.tmp"
         torch.save(state, tmp)
         tmp.replace(self.out / "last.pt")
@@ -433,6 +438,8 @@ class Trainer:
                 t_prev = time.perf_counter()
                 # best = highest recall, then lowest mean rotation error (stored negated-recall first)
                 score = -val["val_recall"] * 1000.0 + val["val_rre_mean"]
+                if self.rank == 0:      # every validated state, for the learning curve (tools/learning_curve.py)
+                    save_checkpoint(self.out / "snapshots" / f"step_{self.step:07d}.pt", self.model, self.metadata(val))
                 if score < self.best:
                     self.best = score
                     if self.rank == 0:

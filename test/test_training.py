@@ -72,6 +72,10 @@ def test_tiny_run_logs_validates_checkpoints_and_resumes(tmp_path):
     # best.pt is an engine checkpoint that carries the feature radii it was trained with
     model, meta = load_checkpoint(tmp_path / "run" / "best.pt")
     assert model.cfg.fpfh_radius == cfg.model.fpfh_radius and meta["step"] in (2, 4)
+    # every validated state is kept as an engine checkpoint for the learning curve
+    snaps = sorted((tmp_path / "run" / "snapshots").glob("step_*.pt"))
+    assert [p.name for p in snaps] == ["step_0000002.pt", "step_0000004.pt"]
+    assert load_checkpoint(snaps[1])[1]["validation"]["val_recall"] == val["val_recall"]
 
     # resume: the step count, the CSV and the weights continue from last.pt
     cfg2 = tiny_config(tmp_path / "run", max_steps=6)
