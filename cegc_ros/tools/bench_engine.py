@@ -13,7 +13,8 @@ point repeated with Gaussian jitter (sigma 3 mm, about a third of the fragments'
 way a denser sensor would sample the same surfaces. The ground truth is unchanged.
 
 Each (size, allocator, method) runs in a fresh subprocess, so that its peak resident memory
-(``ru_maxrss``) is its own: loaded clouds, torch, Open3D and the registrations together. One
+(``ru_maxrss``) is its own: one loaded pair at a time (as a node holds it), torch, Open3D and
+the registrations together. One
 warm-up registration, then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
 90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
 features / registration), and the process's CPU time per registration (all threads; on a
@@ -99,8 +100,11 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
     from cegc_ros import baselines
     from cegc_ros.metrics import rotation_error_deg
 
-    clouds = [np.load(f) for f in files]
-    clouds = [(c["source"], c["target"], c["T"]) for c in clouds]
+    def pair(f: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.load(f) as z:                             # one pair in memory at a time, as in the node
+            return z["source"], z["target"], z["T"]
+
+    first = pair(files[0])
     rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     if method == "cegc":
         from cegc_ros.engine import Registrar
@@ -120,11 +124,14 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
         def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
             r = baselines.register(name, src, tgt, config)
             return r.T_target_source, r.timings
-    run(clouds[0][0], clouds[0][1])                          # warm-up: lazy imports, first kernels
+    run(first[0], first[1])                                  # warm-up: lazy imports, first kernels
+    n_points = len(first[0])
+    del first
     timings: dict[str, list[float]] = {}
     errors = []
     for _ in range(repeats):
-        for src, tgt, T in clouds:
+        for f in files:
+            src, tgt, T = pair(f)
             t0, c0 = time.perf_counter(), time.process_time()
             T_est, stages = run(src, tgt)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -133,8 +140,9 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
             timings.setdefault("wall", []).append(wall)
             timings.setdefault("cpu", []).append(cpu)         # CPU time of all threads
             errors.append(float(rotation_error_deg(T[:3, :3], T_est[:3, :3])))
+            del src, tgt
     return {
-        "method": method, "points": len(clouds[0][0]), "runs": len(timings["wall"]),
+        "method": method, "points": n_points, "runs": len(timings["wall"]),
         "stages": {k: _stats(v) for k, v in timings.items()},
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "rss_after_loading_mb": rss_loaded,
