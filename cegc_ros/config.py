@@ -99,8 +99,12 @@ class EngineConfig:
 
 @dataclass
 class InputConfig:
-    """How the node subscribes to and accepts its two PointCloud2 inputs."""
+    """How the node subscribes to and accepts its PointCloud2 input(s)."""
 
+    mode: str = field(default="pairs", metadata=_meta(
+        "'pairs': register source_cloud onto target_cloud, paired by stamp. 'sequential': "
+        "register each cloud of the one topic 'cloud' against the current keyframe and publish "
+        "odometry (~/odometry, ~/path, TF).", dynamic=False, choices=("pairs", "sequential")))
     reliable: bool = field(default=False, metadata=_meta(
         "Subscribe with RELIABLE QoS (use for bag replay); false uses the sensor-data profile "
         "(BEST_EFFORT, volatile).", dynamic=False))
@@ -128,6 +132,9 @@ class SyncConfig:
 class OutputConfig:
     """Which results are published."""
 
+    odom_frame: str = field(default="odom", metadata=_meta(
+        "frame_id of ~/odometry, ~/path and the parent of the TF (the first cloud's pose).",
+        dynamic=False))
     min_fitness: float = field(default=0.0, metadata=_meta(
         "Poses whose fitness (fraction of source points near the target after alignment) is "
         "below this are not published; the rejection is logged and counted.", 0.0, 1.0))
@@ -169,14 +176,10 @@ class DiagnosticsConfig:
 class SequentialConfig:
     """Sequential mode: one cloud stream registered against keyframes into odometry.
 
-    ``mode`` lives here (``sequential.mode``): it chooses between the two-topic pairing and
-    this keyframe odometry (cegc_ros/sequential/odometry.py; docs/sequential.md).
+    ``input.mode`` chooses between the two-topic pairing and this keyframe odometry
+    (cegc_ros/sequential/odometry.py; docs/sequential.md); ``output.odom_frame`` names its frame.
     """
 
-    mode: str = field(default="pairs", metadata=_meta(
-        "'pairs': register source_cloud onto target_cloud, paired by stamp. 'sequential': "
-        "register each cloud of the one topic 'cloud' against the current keyframe and publish "
-        "odometry (~/odometry, ~/path, TF).", dynamic=False, choices=("pairs", "sequential")))
     voxel_size: float = field(default=0.05, metadata=_meta(
         "Voxel grid (metres) of the clouds that tracking ICP and the keyframe checks run on "
         "(global registration gets the raw clouds and uses preprocess.*).", 1e-4, 10.0))
@@ -219,9 +222,6 @@ class SequentialConfig:
         "keyframe.", 0.0, 180.0))
     path_length: int = field(default=1000, metadata=_meta(
         "Poses kept in ~/path (the oldest are dropped).", 1, 1_000_000))
-    odom_frame: str = field(default="odom", metadata=_meta(
-        "frame_id of ~/odometry, ~/path and the parent of the TF (the first cloud's pose).",
-        dynamic=False))
     publish_tf: bool = field(default=True, metadata=_meta(
         "Publish odom_frame -> cloud frame on /tf (only where tf2_msgs is installed).",
         dynamic=False))

@@ -160,7 +160,7 @@ def test_every_transition_in_sequential_mode(sequence):
     seq = sequence
     gt = seq.relative_poses()
     proc = start("lc_seq", "-p", f"engine.checkpoint:={CHECKPOINT}",
-                 "-p", "sequential.mode:=sequential")
+                 "-p", "input.mode:=sequential")
     mgr = Manager("lc_seq")
     try:
         assert mgr.state() == "unconfigured"
@@ -243,7 +243,7 @@ def test_pairs_mode_poses_while_active_and_shutdown_from_active():
         assert rh.wait_for(lambda: len(mgr.outputs("pose")) == 1, TIMEOUT), mgr.diagnostics()
         pose = mgr.outputs("pose")[0]
         assert rh.stamp_of(pose) == stamp and pose.header.frame_id == "tgt"
-        assert mgr.diagnostics().get("mode") == "pairs"
+        assert rh.wait_for(lambda: mgr.diagnostics().get("mode") == "pairs", TIMEOUT), mgr.diagnostics()
         assert mgr.transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
         code, out = finish(proc)
         assert code == 0, out

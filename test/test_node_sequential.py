@@ -30,7 +30,7 @@ PATH_LENGTH = 10
 NODE_ARGS = ["--ros-args", "--params-file", f"{rh.REPO}/params/register_node.yaml",
              "-p", f"engine.checkpoint:={CHECKPOINT}", "-p", "input.reliable:=true",
              "-p", "preprocess.num_points:=256", "-p", "diagnostics.period:=0.5",
-             "-p", "engine.device:=cpu", "-p", "sequential.mode:=sequential",
+             "-p", "engine.device:=cpu", "-p", "input.mode:=sequential",
              "-p", f"sequential.path_length:={PATH_LENGTH}"]
 
 

@@ -87,6 +87,13 @@ def test_parameters_page_is_generated_and_current():
         "docs/parameters.md is stale: python -m cegc_ros.tools.param_docs > docs/parameters.md")
 
 
+def test_params_file_is_generated_and_current():
+    from cegc_ros.tools.param_docs import parameters_yaml
+
+    assert (DOCS.parent / "params" / "register_node.yaml").read_text() == parameters_yaml(), (
+        "params/register_node.yaml is stale: python -m cegc_ros.tools.param_docs --yaml > params/register_node.yaml")
+
+
 def test_msg_adapters_page_names_every_public_function():
     import msg_adapters.markers
     import msg_adapters.point_cloud2

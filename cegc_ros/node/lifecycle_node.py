@@ -80,7 +80,7 @@ class RegisterLifecycleNode(RegistrationNodeMixin, LifecycleNode):
         info = self.engine.info
         self.get_logger().info(f"configured: device {info.device}, checkpoint "
                                f"{info.checkpoint}, engine process {info.pid}, mode "
-                               f"{self.cfg['sequential'].mode}")
+                               f"{self.cfg['input'].mode}")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:

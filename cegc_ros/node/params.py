@@ -157,7 +157,7 @@ def usage() -> str:
         "",
         "Registers source_cloud onto target_cloud (sensor_msgs/PointCloud2, paired by stamp)",
         "with CEGC and publishes ~/pose, ~/pose_with_covariance, ~/source_overlap,",
-        "~/target_overlap, ~/markers and /diagnostics. With -p sequential.mode:=sequential it",
+        "~/target_overlap, ~/markers and /diagnostics. With -p input.mode:=sequential it",
         "reads the one topic cloud and also publishes odometry: ~/odometry, ~/path (and /tf).",
         "--print-params writes the parameter file with every default (YAML) to stdout.",
         "",

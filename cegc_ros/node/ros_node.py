@@ -122,9 +122,9 @@ class RegistrationNodeMixin:
             self.get_logger().warning(f"warm-up registration failed: {info.warm_up_error}")
 
     def create_mode(self) -> None:
-        """The mode ``sequential.mode`` names: pairs (PairsMode) or keyframe odometry
+        """The mode ``input.mode`` names: pairs (PairsMode) or keyframe odometry
         (SequentialMode); it holds the state that outlives a managed node's deactivation."""
-        if self.cfg["sequential"].mode == "sequential":
+        if self.cfg["input"].mode == "sequential":
             self.mode: Any = SequentialMode(self.cfg["sequential"])
         else:
             self.mode = PairsMode(self.cfg["sync"])

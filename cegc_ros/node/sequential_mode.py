@@ -1,6 +1,6 @@
 """Sequential mode: one cloud stream, keyframe odometry, ~/odometry, ~/path and /tf.
 
-With ``sequential.mode: sequential`` the node reads the one topic ``cloud`` and feeds each
+With ``input.mode: sequential`` the node reads the one topic ``cloud`` and feeds each
 cloud to :class:`cegc_ros.sequential.KeyframeOdometry` (tracking ICP against the current
 keyframe; CEGC global registration when tracking fails or after a gap). Where things run:
 
@@ -15,7 +15,7 @@ The mode object holds the odometry, so its state (keyframe, path, velocity) outl
 node's deactivate/activate; cleanup drops the mode.
 
 Outputs per accepted cloud (all stamped with the cloud's stamp):
-``~/odometry`` (nav_msgs/Odometry: ``sequential.odom_frame`` -> the cloud's frame, covariance
+``~/odometry`` (nav_msgs/Odometry: ``output.odom_frame`` -> the cloud's frame, covariance
 chained along the keyframes), ``~/path`` (nav_msgs/Path, the last ``sequential.path_length``
 poses), ``~/pose`` / ``~/pose_with_covariance`` (the cloud against its keyframe, in the cloud's
 frame, as in pairs mode), ``~/source_overlap`` / ``~/target_overlap`` / ``~/markers`` when the
@@ -118,7 +118,7 @@ class SequentialMode:
         cfg: SequentialConfig = node.cfg["sequential"]
         msg = job.source
         stamp, frame_id = msg.header.stamp, msg.header.frame_id
-        odom_header = Header(stamp=stamp, frame_id=cfg.odom_frame)
+        odom_header = Header(stamp=stamp, frame_id=node.cfg["output"].odom_frame)
         cloud_header = Header(stamp=stamp, frame_id=frame_id)
         try:
             odom = odometry(frame.T_odom_cloud, frame.covariance, odom_header, frame_id)
