@@ -59,18 +59,21 @@ def cap_points(points: np.ndarray, voxel: float, max_points: int, rng: np.random
 def bound_pair(source_xyz: object, target_xyz: object, cfg: PreprocessConfig,
                min_points: int) -> BoundedPair:
     """Finite filter, voxel grid and cap for both clouds; ValueError on unusable input."""
-    src = finite_cloud("source", source_xyz, min_points)
-    tgt = finite_cloud("target", target_xyz, min_points)
-    n_in = (len(src), len(tgt))
-    voxel = cfg.voxel_size if cfg.voxel_size > 0 else cfg.voxel_ratio * max(extent(src), extent(tgt))
+    # Memory: one finite copy of a cloud at a time (its input dtype; the extents need only
+    # min / max), so a 5M-point pair peaks at the inputs + one copy + Open3D's grid of one cloud.
+    ext = max(extent(finite_cloud(name, xyz, min_points))
+              for name, xyz in (("source", source_xyz), ("target", target_xyz)))
+    voxel = cfg.voxel_size if cfg.voxel_size > 0 else cfg.voxel_ratio * ext
     rng = np.random.default_rng(cfg.seed)
-    out = []
-    for name, cloud in (("source", src), ("target", tgt)):
+    out, n_in = [], []
+    for name, xyz in (("source", source_xyz), ("target", target_xyz)):
+        cloud = finite_cloud(name, xyz, min_points)
+        n_in.append(len(cloud))
         if voxel > 0:
-            cloud = voxel_downsample(cloud, voxel).astype(np.float64)
-        cloud = cap_points(cloud, voxel, cfg.max_points, rng)
+            cloud = voxel_downsample(cloud, voxel)
+        cloud = cap_points(np.asarray(cloud, np.float64), voxel, cfg.max_points, rng)
         if len(cloud) < min_points:
             raise ValueError(f"{name} has {len(cloud)} points after the {voxel:.4g} m voxel grid, "
                              f"at least {min_points} are needed")
         out.append(cloud)
-    return BoundedPair(out[0], out[1], float(voxel), n_in)
+    return BoundedPair(out[0], out[1], float(voxel), (n_in[0], n_in[1]))
