@@ -17,7 +17,7 @@ from pathlib import Path
 
 PACKAGE = "cegc_ros"
 #: The weights the engine loads by default (cegc_ros.engine.default_weights).
-ENGINE_WEIGHTS = "cegc_7scenes_noise.pt"
+ENGINE_WEIGHTS = "cegc_views.pt"
 WEIGHT_NAMES = (ENGINE_WEIGHTS,)
 
 _PACKAGE_DIR = Path(__file__).resolve().parent

@@ -336,8 +336,12 @@ class Trainer:
             # Warm start: a new run (its curriculum starts at step 0, the best score afresh, since
             # the validation set may differ); what the checkpoint had seen is kept in the metadata.
             meta = state.get("metadata", {})
-            self.warm_start = {"from": str(path), "pairs_seen": int(meta.get("pairs_seen", meta.get("step", 0))),
-                               "elapsed_minutes": float(meta.get("elapsed_minutes", 0.0))}
+            prior = meta.get("warm_start") or {}       # the checkpoint's own warm start, if any
+            self.warm_start = {"from": str(path),
+                               "pairs_seen": int(meta.get("step", 0)) + int(prior.get("pairs_seen", 0))
+                               if prior else int(meta.get("pairs_seen", meta.get("step", 0))),
+                               "elapsed_minutes": float(meta.get("elapsed_minutes", 0.0))
+                               + float(prior.get("elapsed_minutes", 0.0))}
 
     def _val_key(self) -> str:
         """What the validation set is made of: best scores compare only within one key."""
@@ -466,7 +470,7 @@ class Trainer:
     def metadata(self, val: dict[str, float]) -> dict[str, Any]:
         import platform
         return {"step": self.step, "elapsed_minutes": round(self.elapsed / 60, 2),
-                "pairs_seen": self.step, "device": self.device, "machine": platform.processor() or platform.machine(),
+                "pairs_seen": self.step + int(self.warm_start.get("pairs_seen", 0)), "device": self.device, "machine": platform.processor() or platform.machine(),
                 "torch": str(torch.__version__), "data": "synthetic different-view fragment pairs and 7scenes-protocol copies from procedural rooms",
                 "train_config": self.cfg.to_dict(), "validation": val, "warm_start": self.warm_start,
                 "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

@@ -84,12 +84,12 @@ def test_pip_route_installs_share_files_found_by_ament_index(tmp_path):
     # The installed package (not the checkout) finds weights that are those of the checkout.
     site = next(prefix.glob("lib/python3*/site-packages"))
     code = ("import cegc_ros.paths as p; print(p.__file__); "
-            "print(p.shipped_weights('cegc_7scenes_noise.pt'))")
+            "print(p.shipped_weights('cegc_views.pt'))")
     out = run([sys.executable, "-c", code], timeout=60, cwd="/",
               env=dict(env, PYTHONPATH=str(site))).stdout.split()
     assert Path(out[-2]).is_relative_to(site)
     assert Path(out[-1]).read_bytes() == (
-        REPO / "cegc_ros" / "weights" / "cegc_7scenes_noise.pt").read_bytes()
+        REPO / "cegc_ros" / "weights" / "cegc_views.pt").read_bytes()
 
 
 @pytest.mark.skipif(not os.environ.get("CEGC_ROS_BOOTSTRAP"),

@@ -59,16 +59,16 @@ def test_installed_package_finds_its_weights_through_the_ament_index(tmp_path):
 def test_missing_weights_are_one_clear_error(tmp_path, registered):
     site, prefix = _install_layout(tmp_path, with_weights=False)
     code = ("from cegc_ros.paths import shipped_weights as s, ShippedFileError as E\n"
-            "try:\n    s('cegc_7scenes_noise.pt')\nexcept E as e:\n"
+            "try:\n    s('cegc_views.pt')\nexcept E as e:\n"
             "    print(isinstance(e, FileNotFoundError)); print(e)")
     proc = _probe(site, prefix if registered else None, code)
     assert proc.returncode == 0, proc.stderr
     flag, message = proc.stdout.strip().split("\n")
     assert flag == "True"
-    assert message.startswith("shipped weights cegc_7scenes_noise.pt not found: looked at ")
-    assert str(site / "cegc_ros" / "weights" / "cegc_7scenes_noise.pt") in message
+    assert message.startswith("shipped weights cegc_views.pt not found: looked at ")
+    assert str(site / "cegc_ros" / "weights" / "cegc_views.pt") in message
     if registered:
-        assert str(prefix / "share/cegc_ros/weights/cegc_7scenes_noise.pt") in message
+        assert str(prefix / "share/cegc_ros/weights/cegc_views.pt") in message
     else:
         assert "not in the ament index" in message
 

@@ -252,3 +252,21 @@ def test_candidate_objective_learns_one_pair(tmp_path):
         last = parts
     assert last["loss"] < 0.7 * first["loss"]
     assert last["top100_precision"] > first["top100_precision"] + 0.2
+
+
+def test_a_warm_start_from_a_warm_started_checkpoint_counts_every_pair_seen(tmp_path):
+    """The campaign resumes from its shipped checkpoint: pairs seen accumulate along the chain."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "chain", max_steps=2)
+    save_checkpoint(tmp_path / "shipped.pt", CEGC(cfg.model),
+                    {"step": 1500, "pairs_seen": 6994, "elapsed_minutes": 20.0,
+                     "warm_start": {"pairs_seen": 5494, "elapsed_minutes": 57.8}})
+    trainer = Trainer(cfg, resume=tmp_path / "shipped.pt", device="cpu", fragments=frags, val_fragments=frags,
+                      progress=False)
+    assert trainer.step == 0 and trainer.warm_start["pairs_seen"] == 6994
+    assert trainer.warm_start["elapsed_minutes"] == pytest.approx(77.8)
+    trainer.run()
+    _, meta = load_checkpoint(tmp_path / "chain" / "snapshots" / "step_0000002.pt")
+    assert meta["pairs_seen"] == 6996 and meta["warm_start"]["pairs_seen"] == 6994

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
             step = int(reg.metadata.get("step", 0))
             if step in done:
                 continue
-            seen = step + int(reg.metadata.get("warm_start", {}).get("pairs_seen", 0))
+            seen = step + int((reg.metadata.get("warm_start") or {}).get("pairs_seen", 0))
             row = {"step": step, "pairs_seen": seen,
                    "val_recall": reg.metadata.get("validation", {}).get("val_recall", ""),
                    "test_recall": round(recall(reg, test), 4), "test_pairs": len(test),
