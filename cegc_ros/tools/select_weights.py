@@ -1,0 +1,82 @@
+"""Choose weights on synthetic validation: engine recall of checkpoints on different-view pairs.
+
+    python -m cegc_ros.tools.select_weights .cache/pairs/val cegc_ros/weights/cegc_views.pt \
+        runs/views/best.pt --pairs 40
+
+The engine at node defaults (each checkpoint in turn) on ``--pairs`` evenly spaced Kinect
+different-view pairs of a validation pair cache (``cegc-make-pairs --split val``; rooms never
+trained on, never real data). Prints one line per checkpoint: recall at 15 deg / 0.3 m, on the
+pairs under and over 30% overlap, median seconds per pair. This is how the shipped weights are
+chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preprocess setting
+(``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def evaluate(registrar, pairs) -> dict[str, float]:
+    """Recall overall / under 30% overlap / from 30% on, and the median seconds per pair."""
+    from cegc_ros.metrics import rotation_error_deg
+    ok, low, secs = [], [], []
+    for p in pairs:
+        res = registrar.register(p.source, p.target)
+        T, E = p.T_target_source, res.T_target_source
+        ok.append(res.valid and rotation_error_deg(T[:3, :3], E[:3, :3]) < 15.0
+                  and np.linalg.norm(T[:3, 3] - E[:3, 3]) < 0.3)
+        low.append(p.info["overlap"] < 0.3)
+        secs.append(res.timings["total"])
+    ok, low = np.array(ok, bool), np.array(low, bool)
+
+    def share(mask: np.ndarray) -> float:
+        return float(ok[mask].mean()) if mask.any() else float("nan")
+    return {"recall": float(ok.mean()), "recall_low": share(low), "recall_high": share(~low),
+            "n_low": int(low.sum()), "median_s": float(np.median(secs))}
+
+
+def _overrides(items: list[str]):
+    from cegc_ros.config import EngineConfig, PreprocessConfig
+    pre, eng = PreprocessConfig(), EngineConfig()
+    for item in items:
+        key, _, value = item.partition("=")
+        section, _, name = key.partition(".")
+        obj = {"preprocess": pre, "engine": eng}.get(section)
+        if obj is None or not hasattr(obj, name) or not value:
+            raise ValueError(f"--set {item!r}: expected preprocess.<field>=<value> or engine.<field>=<value>")
+        setattr(obj, name, type(getattr(obj, name))(value))
+    return pre, eng
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="select_weights", description=__doc__.splitlines()[0])
+    ap.add_argument("cache", type=Path, help="a validation pair cache (cegc-make-pairs --split val)")
+    ap.add_argument("checkpoints", nargs="+", help="checkpoints to compare")
+    ap.add_argument("--pairs", type=int, default=40)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args(argv)
+    try:
+        from cegc_ros.data.pair_cache import PairCache, PairCacheError
+        from cegc_ros.engine import CheckpointError, Registrar
+        pre, eng = _overrides(args.set)
+        cache = PairCache(args.cache, kinds=("views",), sensors=("kinect",))
+        if len(cache) == 0:
+            raise ValueError(f"{args.cache}: no Kinect different-view pairs")
+        idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
+        pairs = [cache[int(i)] for i in idx]
+        for ck in args.checkpoints:
+            r = evaluate(Registrar.from_checkpoint(ck, device="cpu", preprocess=pre, engine=eng), pairs)
+            print(f"{ck}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
+                  f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s", flush=True)
+    except (OSError, ValueError, PairCacheError, CheckpointError) as err:
+        print(f"select_weights: {err}".splitlines()[0], file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""tools/select_weights: engine recall of checkpoints on a validation pair cache."""
+
+from __future__ import annotations
+
+import pytest
+
+from cegc_ros.data import pair_cache as PC
+from cegc_ros.data import splits, views
+from cegc_ros.tools import select_weights
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    cfg = views.ViewConfig(fragments=4, pairs=3, copy_pairs=1, max_points=2000)
+    rooms = [views.make_room_pairs(splits.room_seed("val", 2), "kinect", cfg)]     # 2 view pairs + 1 copy
+    root = tmp_path_factory.mktemp("val")
+    PC.write_shard(root / PC.shard_name(0, 1), rooms, {"split": "val"})
+    return root
+
+
+def test_recall_line_per_checkpoint_and_one_line_errors(cache, capsys):
+    from cegc_ros.engine import default_weights
+    n_views = len(PC.PairCache(cache, kinds=("views",), sensors=("kinect",)))
+    assert n_views == 2
+    assert select_weights.main([str(cache), str(default_weights()), "--set", "engine.candidates=fpfh"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"{default_weights()}: recall ") and f"on {n_views} pairs" in line
+    recall = float(line.split("recall ")[1].split()[0])
+    assert 0.0 <= recall <= 1.0
+    assert select_weights.main([str(cache), "/nope.pt"]) == 1
+    assert "nope.pt" in capsys.readouterr().err
+    assert select_weights.main([str(cache), str(default_weights()), "--set", "engine.bogus=1"]) == 1
+    assert "--set 'engine.bogus=1'" in capsys.readouterr().err
+
+
+def test_evaluate_counts_successes_by_overlap():
+    import numpy as np
+    from types import SimpleNamespace
+
+    class Exact:
+        def register(self, s, t):
+            return SimpleNamespace(valid=True, T_target_source=np.eye(4), timings={"total": 0.5})
+    T_off = np.eye(4)
+    T_off[0, 3] = 1.0
+    pairs = [SimpleNamespace(source=None, target=None, T_target_source=np.eye(4), info={"overlap": 0.2}),
+             SimpleNamespace(source=None, target=None, T_target_source=T_off, info={"overlap": 0.5}),
+             SimpleNamespace(source=None, target=None, T_target_source=np.eye(4), info={"overlap": 0.6})]
+    r = select_weights.evaluate(Exact(), pairs)
+    assert r["recall"] == pytest.approx(2 / 3) and r["recall_low"] == 1.0 and r["recall_high"] == 0.5
+    assert r["n_low"] == 1 and r["median_s"] == 0.5
