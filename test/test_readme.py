@@ -88,10 +88,10 @@ def test_parameters_page_is_generated_and_current():
 
 
 def test_params_file_is_generated_and_current():
-    from cegc_ros.tools.param_docs import parameters_yaml
+    from cegc_ros.node.params import params_yaml
 
-    assert (DOCS.parent / "params" / "register_node.yaml").read_text() == parameters_yaml(), (
-        "params/register_node.yaml is stale: python -m cegc_ros.tools.param_docs --yaml > params/register_node.yaml")
+    assert (DOCS.parent / "params" / "register_node.yaml").read_text() == params_yaml(), (
+        "params/register_node.yaml is stale: register_node --print-params > params/register_node.yaml")
 
 
 def test_msg_adapters_page_names_every_public_function():
