@@ -12,21 +12,11 @@ from cegc_ros.data.protocols import Pair
 from cegc_ros.engine import save_checkpoint
 from cegc_ros.model import CEGC, ModelConfig
 from cegc_ros.tools import learning_curve
-
-
-def _corner(seed: int, n: int = 3000) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    parts = []
-    for axis in range(3):
-        p = rng.uniform(0, 3, (n // 4, 3))
-        p[:, axis] = 0.0
-        parts.append(p)
-    parts.append(rng.uniform(0.5, 2.0, 3) + rng.uniform(-0.3, 0.3, (n // 4, 3)) * np.array([1, 1, 0.2]))
-    return np.concatenate(parts).astype(np.float32)
+from test_training import room
 
 
 def test_curve_rows_per_snapshot_and_resume(tmp_path, monkeypatch, capsys):
-    pts = _corner(0)
+    pts = room(0)
     T_ok, T_far = np.eye(4), np.eye(4)
     T_far[:3, 3] = [5.0, 0.0, 0.0]                     # ground truth no registration can reach
     pairs = [Pair(pts, pts, T_ok, {"protocol": "fragments"}), Pair(pts, pts, T_far, {"protocol": "fragments"})]
