@@ -176,3 +176,139 @@ def test_bag_with_fewer_messages_than_its_metadata_raises(tmp_path, pairs):
         db.execute("DELETE FROM messages WHERE timestamp = (SELECT MAX(timestamp) FROM messages)")
     with pytest.raises(B.BagError, match="truncated: metadata lists 16 messages, storage has 12"):
         list(B.read_pairs(out))
+
+
+# --------------------------------------------------------------------------------------------
+# Grouping messages by header stamp (shared by read_pairs and read_sequence)
+# --------------------------------------------------------------------------------------------
+
+def _raw_bag(path, types: dict[str, str], messages) -> None:
+    """Write a bag by hand: ``messages`` is a list of (topic, log time, header stamp, payload)
+    with payload an (N, 3) cloud, a (4, 4) pose or b"..." raw CDR bytes (a broken message)."""
+    from rosbags.rosbag2 import Writer
+
+    ts = B._typestore()
+    with Writer(path, version=9) as w:
+        conns = {t: w.add_connection(t, m, typestore=ts) for t, m in types.items()}
+        for topic, logtime, stamp, payload in messages:
+            if isinstance(payload, bytes):
+                raw = payload
+            else:
+                header = B._header(ts, stamp, "f")
+                msg = (B.xyz_to_pointcloud2(ts, payload, header) if payload.shape[1] == 3
+                       else B.matrix_to_pose_stamped(ts, payload, header))
+                raw = ts.serialize_cdr(msg, types[topic])
+            w.write(conns[topic], logtime, raw)
+
+
+def _consume(it) -> tuple[list, str]:
+    """(items yielded before the iterator stopped, the BagError text or "")."""
+    got = []
+    try:
+        for item in it:
+            got.append(item)
+    except B.BagError as err:
+        return got, str(err)
+    return got, ""
+
+
+_PAIR_TYPES = {t: B._TYPES[t] for t in (B.TOPIC_SOURCE, B.TOPIC_TARGET, B.TOPIC_GT)}
+_SEQ_TYPES = {t: B._SEQUENCE_TYPES[t] for t in (B.TOPIC_CLOUD, B.TOPIC_CLOUD_GT)}
+
+
+def _pts(k: int) -> np.ndarray:
+    return np.full((2, 3), float(k), np.float32)
+
+
+def _pose(k: int) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = k
+    return T
+
+
+def test_pairs_are_grouped_by_stamp_in_completion_order(tmp_path):
+    S, T, G = B.TOPIC_SOURCE, B.TOPIC_TARGET, B.TOPIC_GT
+    out = tmp_path / "bag"
+    _raw_bag(out, _PAIR_TYPES, [
+        (S, 1, 100, _pts(1)), (T, 2, 100, _pts(2)),                  # 100: no ground truth
+        (S, 3, 200, _pts(3)), (G, 4, 200, _pose(4)), (T, 5, 200, _pts(5)),
+        (T, 6, 50, _pts(6)), (S, 7, 50, _pts(7)), (G, 8, 50, _pose(8)),   # stamp goes back
+        (G, 9, 400, _pose(9)), (S, 10, 300, _pts(10)),               # 400 and 300 never complete
+        (T, 11, 300, _pts(11))])
+    got, err = _consume(B.read_pairs(out))
+    # 100 is yielded (without ground truth) when 200 completes; 50 completes on its own; the
+    # leftovers 300 and 400 come in stamp order at the end, and 400 has no clouds.
+    assert [p.stamp_ns for p in got] == [100, 200, 50, 300]
+    assert [None if p.T_target_source is None else p.T_target_source[0, 3] for p in got] == \
+        [None, 4.0, 8.0, None]
+    assert [(p.source[0, 0], p.target[0, 0]) for p in got] == [(1, 2), (3, 5), (7, 6), (10, 11)]
+    assert err == (f"{out}: pair at stamp 400 lacks ['/cegc/source', '/cegc/target'] "
+                   "(truncated bag?)")
+
+
+def test_sequence_frames_are_grouped_by_stamp_in_completion_order(tmp_path):
+    C, G = B.TOPIC_CLOUD, B.TOPIC_CLOUD_GT
+    out = tmp_path / "seq"
+    _raw_bag(out, _SEQ_TYPES, [
+        (C, 1, 100, _pts(1)), (C, 2, 200, _pts(2)),                  # 100: no ground truth
+        (G, 3, 200, _pose(3)), (G, 4, 50, _pose(4)), (C, 5, 50, _pts(5)),
+        (C, 6, 300, _pts(6)), (G, 7, 250, _pose(7))])                # 250 never gets a cloud
+    got, err = _consume(B.read_sequence(out))
+    assert [(f.stamp_ns, f.cloud[0, 0]) for f in got] == [(100, 1), (200, 2), (50, 5)]
+    assert [None if f.T_world_cloud is None else f.T_world_cloud[0, 3] for f in got] == \
+        [None, 3.0, 4.0]
+    assert err == f"{out}: ground truth at stamp 250 has no cloud (truncated bag?)"
+
+
+def test_grouping_rejects_duplicate_stamps(tmp_path):
+    S, T, C = B.TOPIC_SOURCE, B.TOPIC_TARGET, B.TOPIC_CLOUD
+    out = tmp_path / "bag"
+    _raw_bag(out, _PAIR_TYPES, [(S, 1, 100, _pts(1)), (S, 2, 100, _pts(2)),
+                                (T, 3, 100, _pts(3))])
+    got, err = _consume(B.read_pairs(out))
+    assert got == [] and err == f"{out}: two /cegc/source messages with stamp 100"
+    seq = tmp_path / "seq"
+    _raw_bag(seq, _SEQ_TYPES, [(C, 1, 100, _pts(1)), (C, 2, 200, _pts(2)),
+                               (C, 3, 200, _pts(3)), (B.TOPIC_CLOUD_GT, 4, 100, _pose(4))])
+    got, err = _consume(B.read_sequence(seq))
+    assert got == [] and err == f"{seq}: two /cegc/cloud messages with stamp 200"
+    # Only a group still pending is checked: a stamp repeated after its group was yielded
+    # starts a new group (here every cloud completes its group at once: no ground truth).
+    again = tmp_path / "again"
+    _raw_bag(again, {C: B._SEQUENCE_TYPES[C]}, [(C, 1, 100, _pts(1)), (C, 2, 200, _pts(2)),
+                                                (C, 3, 200, _pts(3))])
+    got, err = _consume(B.read_sequence(again))
+    assert [(f.stamp_ns, f.cloud[0, 0]) for f in got] == [(100, 1), (200, 2), (200, 3)]
+    assert err == ""
+
+
+def test_grouping_counts_messages_seen_against_metadata(tmp_path, pairs):
+    import sqlite3
+
+    S, T, C = B.TOPIC_SOURCE, B.TOPIC_TARGET, B.TOPIC_CLOUD
+    out = tmp_path / "bag"                                    # 3rd of 4 messages is not CDR
+    _raw_bag(out, _PAIR_TYPES, [(S, 1, 100, _pts(1)), (T, 2, 100, _pts(2)),
+                                (S, 3, 200, b"\x00\x01"), (T, 4, 200, _pts(4))])
+    got, err = _consume(B.read_pairs(out))
+    assert [p.stamp_ns for p in got] == [100]
+    assert err.startswith(f"{out}: storage unreadable after 3 of 4 messages (truncated or "
+                          "corrupted?): ")
+    seq = tmp_path / "seq"
+    _raw_bag(seq, _SEQ_TYPES, [(C, 1, 100, _pts(1)), (C, 2, 200, b"\x00\x01")])
+    got, err = _consume(B.read_sequence(seq))
+    assert [f.stamp_ns for f in got] == [100]
+    assert err.startswith(f"{seq}: storage unreadable after 2 of 2 messages")
+    cut = tmp_path / "cut"                                    # sequence_info is not counted
+    B.write_sequence(cut, _three_frames())
+    with sqlite3.connect(cut / "cut.db3") as db:
+        db.execute("DELETE FROM messages WHERE timestamp = (SELECT MAX(timestamp) FROM messages)")
+    got, err = _consume(B.read_sequence(cut))
+    assert [f.stamp_ns for f in got] == [10, 20]              # read before the count is checked
+    assert err == f"{cut} is truncated: metadata lists 6 messages, storage has 4"
+
+
+def _three_frames():
+    from cegc_ros.data import sequences as Q
+
+    return Q.Sequence([_pts(k) for k in range(3)], np.stack([_pose(k) for k in range(3)]),
+                      [10, 20, 30], "lidar", {"n": 3})

@@ -24,10 +24,10 @@ import itertools
 import json
 import sqlite3
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -238,6 +238,57 @@ def _read_errors() -> tuple[type[BaseException], ...]:
             ValueError, KeyError, IndexError)
 
 
+_Item = TypeVar("_Item")
+
+
+def _grouped_by_stamp(reader: Any, ts: Any, path: Path, connections: list[Any],
+                      convert: Callable[[dict[str, Any], int, Path], _Item],
+                      logtime_topics: frozenset[str] = frozenset()) -> Iterator[_Item]:
+    """Read ``connections`` of an open rosbags ``reader`` and yield one item per header stamp.
+
+    Messages sharing a stamp (int nanoseconds from ``header.stamp``; for a topic in
+    ``logtime_topics``, which has no header, its bag log time) form a group ``slot``: a dict
+    topic -> deserialised message, at most one per topic. Each group is yielded as
+    ``convert(slot, stamp, path)``. A group is complete once it holds every topic of
+    ``connections`` that the metadata lists messages for; then the still-pending groups with
+    an earlier stamp (those lacking an optional message) are yielded first, in stamp order,
+    then the complete one. Groups still pending at the end follow in stamp order. A bag logged in
+    stamp order thus comes out in stamp order; a stamp that goes back comes out when complete.
+
+    Raises BagError for a second message of one topic in a pending group (a stamp repeated
+    after its group was yielded starts a new group), for storage that fails after ``seen`` of
+    the ``listed`` messages (``convert`` runs inside that guard too, except for the groups
+    yielded at the end), and for fewer messages than the metadata lists.
+    """
+    errors = _read_errors()
+    expected = {c.topic for c in connections if c.msgcount > 0}
+    listed = sum(c.msgcount for c in connections)
+    pending: dict[int, dict[str, Any]] = {}
+    seen = 0
+    try:
+        for conn, logtime, raw in reader.messages(connections=connections):
+            seen += 1
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            if conn.topic in logtime_topics:
+                stamp = int(logtime)
+            else:
+                stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+            slot = pending.setdefault(stamp, {})
+            if conn.topic in slot:
+                raise BagError(f"{path}: two {conn.topic} messages with stamp {stamp}")
+            slot[conn.topic] = msg
+            if expected <= slot.keys():
+                for old in sorted(k for k in pending if k <= stamp):
+                    yield convert(pending.pop(old), old, path)
+    except errors as err:
+        raise BagError(f"{path}: storage unreadable after {seen} of {listed} messages "
+                       f"(truncated or corrupted?): {err}") from err
+    if seen < listed:
+        raise BagError(f"{path} is truncated: metadata lists {listed} messages, storage has {seen}")
+    for stamp in sorted(pending):
+        yield convert(pending[stamp], stamp, path)
+
+
 def read_pairs(path: str | Path) -> Iterator[BagPair]:
     """Yield the pairs of a pair bag (sqlite3 or mcap storage), in stamp order.
 
@@ -260,13 +311,12 @@ def read_pairs(path: str | Path) -> Iterator[BagPair]:
     except errors as err:
         raise BagError(f"cannot open bag {path}: {err}") from err
     try:
-        yield from _read_open(reader, ts, path, errors)
+        yield from _read_open(reader, ts, path)
     finally:
         reader.close()
 
 
-def _read_open(reader: Any, ts: Any, path: Path,
-               errors: tuple[type[BaseException], ...]) -> Iterator[BagPair]:
+def _read_open(reader: Any, ts: Any, path: Path) -> Iterator[BagPair]:
     topics = {c.topic: c for c in reader.connections}
     missing = [t for t in (TOPIC_SOURCE, TOPIC_TARGET) if t not in topics]
     if missing:
@@ -276,34 +326,8 @@ def _read_open(reader: Any, ts: Any, path: Path,
         if t in _TYPES and c.msgtype != _TYPES[t]:
             raise BagError(f"{path}: topic {t} has type {c.msgtype}, expected {_TYPES[t]}")
     wanted = [c for c in reader.connections if c.topic in _TYPES]
-    expected = {c.topic for c in wanted if c.msgcount > 0}
-    listed = sum(c.msgcount for c in wanted)
-    pending: dict[int, dict[str, Any]] = {}
-    seen = 0
-    try:
-        for conn, logtime, raw in reader.messages(connections=wanted):
-            seen += 1
-            msg = ts.deserialize_cdr(raw, conn.msgtype)
-            if conn.topic == TOPIC_INFO:        # String has no header: its log time is the stamp
-                stamp = int(logtime)
-            else:
-                stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
-            slot = pending.setdefault(stamp, {})
-            if conn.topic in slot:
-                raise BagError(f"{path}: two {conn.topic} messages with stamp {stamp}")
-            slot[conn.topic] = msg
-            if expected <= slot.keys():
-                # Older pairs still pending lack optional messages: they come first.
-                for old in sorted(k for k in pending if k < stamp):
-                    yield _to_pair(pending.pop(old), old, path)
-                yield _to_pair(pending.pop(stamp), stamp, path)
-    except errors as err:
-        raise BagError(f"{path}: storage unreadable after {seen} of {listed} messages "
-                       f"(truncated or corrupted?): {err}") from err
-    if seen < listed:
-        raise BagError(f"{path} is truncated: metadata lists {listed} messages, storage has {seen}")
-    for stamp in sorted(pending):
-        yield _to_pair(pending[stamp], stamp, path)
+    # pair_info (a String) has no header: its log time is the pair's stamp.
+    yield from _grouped_by_stamp(reader, ts, path, wanted, _to_pair, frozenset({TOPIC_INFO}))
 
 
 def _to_pair(slot: dict[str, Any], stamp: int, path: Path) -> BagPair:
@@ -436,34 +460,9 @@ def read_sequence(path: str | Path) -> Iterator[BagFrame]:
     ground truth (None where the bag has none), streaming. Raises BagError naming the problem
     for a missing, foreign, truncated or malformed bag, or a ground truth without a cloud."""
     reader, ts, path = _open_sequence(path)
-    errors = _read_errors()
     try:
         wanted = [c for c in reader.connections if c.topic in (TOPIC_CLOUD, TOPIC_CLOUD_GT)]
-        expected = {c.topic for c in wanted if c.msgcount > 0}
-        listed = sum(c.msgcount for c in wanted)
-        pending: dict[int, dict[str, Any]] = {}
-        seen = 0
-        try:
-            for conn, _, raw in reader.messages(connections=wanted):
-                seen += 1
-                msg = ts.deserialize_cdr(raw, conn.msgtype)
-                stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
-                slot = pending.setdefault(stamp, {})
-                if conn.topic in slot:
-                    raise BagError(f"{path}: two {conn.topic} messages with stamp {stamp}")
-                slot[conn.topic] = msg
-                if expected <= slot.keys():
-                    # Older stamps still pending lack their ground truth: they come first.
-                    for old in sorted(k for k in pending if k <= stamp):
-                        yield _to_frame(pending.pop(old), old, path)
-        except errors as err:
-            raise BagError(f"{path}: storage unreadable after {seen} of {listed} messages "
-                           f"(truncated or corrupted?): {err}") from err
-        if seen < listed:
-            raise BagError(f"{path} is truncated: metadata lists {listed} messages, storage "
-                           f"has {seen}")
-        for stamp in sorted(pending):
-            yield _to_frame(pending[stamp], stamp, path)
+        yield from _grouped_by_stamp(reader, ts, path, wanted, _to_frame)
     finally:
         reader.close()
 
