@@ -157,6 +157,34 @@ def test_huge_clouds_are_thinned_counted_and_logged_once(stack):
                        "uniform stride"]
 
 
+def test_bytes_that_are_not_a_point_cloud2_are_take_errors_and_the_node_goes_on(stack):
+    """The node reads its inputs' serialized bytes itself (raw subscriptions): a buffer that
+    is not a PointCloud2 is counted as a take error and logged, never paired, never a crash."""
+    from rclpy.serialization import serialize_message
+
+    node, probe = stack.node("fake_engines:echo", "/bytes", diagnostics__log_throttle=3600.0)
+    logged: list[str] = []
+    emit = node._log._emit
+    node._log._emit = lambda text: (logged.append(text), emit(text))
+    t = 5000 * SEC
+    good = serialize_message(rh.cloud(_pts(100), "a", t))
+    for raw in (b"\x00\x01\x00\x00" + b"\xff" * 64,   # a frame_id longer than the buffer
+                good[: len(good) // 2],                 # cut inside the points
+                good[:-1] + b"\x05",                    # is_dense neither 0 nor 1
+                b"\x00\x07" + good[2:]):                # XCDR2: not what this node reads
+        probe.pub["source"].publish(raw)
+    assert rh.wait_for(lambda: node.stats.count("take_errors") == 4, 30.0)
+    assert node.stats.count("messages_in.source") == 0
+    probe.send(rh.cloud(_pts(100), "a", t), rh.cloud(_pts(100), "b", t))
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 60.0)
+    values = node.diagnostics_values()
+    assert (values["take_errors"], values["pairs_out"], values["pairs_rejected"]) == \
+        ("4", "1", "0")
+    takes = [ln for ln in logged if "could not take" in ln]
+    assert takes == ["could not take a message: CdrError: serialized PointCloud2 ends inside "
+                     "header.frame_id: 4294967295 bytes needed at offset 16, the buffer has 68"]
+
+
 def test_namespaced_nodes_have_their_own_status_and_replay_finds_its_node(stack, tmp_path):
     from cegc_ros.data.bag import write_pairs
     from cegc_ros.data.protocols import make_pairs

@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import (
@@ -48,6 +49,7 @@ from cegc_ros.node.stats import NodeStats, Rejected
 from cegc_ros.node.support import ThrottledLog, stamp_ns
 from msg_adapters.markers import correspondence_markers
 from msg_adapters.point_cloud2 import xyz_to_cloud
+from msg_adapters.point_cloud2_cdr import CdrError, parse_point_cloud2
 from msg_adapters.pose import pose_stamped, pose_with_covariance_stamped
 
 _PTYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -143,17 +145,22 @@ class RegistrationNodeMixin:
         self.mode.create_outputs(self)
 
     def create_inputs(self) -> None:
-        """The subscriptions of the mode (one per input of the mode)."""
+        """The subscriptions of the mode (one per input of the mode).
+
+        They take the serialized bytes (``raw=True``): rclpy building a Python message of a
+        5M-point cloud costs the executor ~200 ms, most of it holding the GIL. The executor
+        reads only the header and the layout (:meth:`on_serialized_cloud`); the points stay
+        in the bytes until the worker converts them.
+        """
         inp = self.cfg["input"]
         reliability = (ReliabilityPolicy.RELIABLE if inp.reliable
                        else qos_profile_sensor_data.reliability)
         self.input_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=inp.queue_depth,
                                     reliability=reliability,
                                     durability=qos_profile_sensor_data.durability)
-        self.inputs = [self.create_subscription(PointCloud2, topic,
-                                                lambda m, side=side: self.on_cloud(side, m),
-                                                self.input_qos)
-                       for side, topic in self.mode.inputs.items()]
+        self.inputs = [self.create_subscription(
+            PointCloud2, topic, lambda data, side=side: self.on_serialized_cloud(side, data),
+            self.input_qos, raw=True) for side, topic in self.mode.inputs.items()]
 
     def start_worker(self) -> None:
         self.worker = self.mode.make_worker(self)
@@ -217,7 +224,23 @@ class RegistrationNodeMixin:
         self.stats.set_window(diag.window)
 
     # -- inputs (executor thread) ---------------------------------------------------------
+    def on_serialized_cloud(self, side: str, data: bytes) -> None:
+        """One cloud as its CDR bytes: header and layout read (a few hundred bytes, whatever
+        the size of the cloud), the points left in ``data`` as a view; then :meth:`on_cloud`.
+        Bytes that are not a PointCloud2 are a take error, as when rclpy could not
+        deserialize a message."""
+        try:
+            cloud = parse_point_cloud2(data)
+        except CdrError as err:
+            self.take_error(err)
+            return
+        stamp = cloud.header.stamp
+        cloud.header = Header(stamp=Time(sec=stamp.sec, nanosec=stamp.nanosec),
+                              frame_id=cloud.header.frame_id)   # the outputs' header type
+        self.on_cloud(side, cloud)
+
     def on_cloud(self, side: str, msg: Any) -> None:
+        """One cloud (a PointCloud2 or a CdrPointCloud2): counted, paired, maybe a job."""
         now = time.monotonic()
         self.stats.add(f"messages_in.{side}")
         offer = self.mode.offer(side, stamp_ns(msg.header.stamp), msg, now)
@@ -228,7 +251,8 @@ class RegistrationNodeMixin:
             self.worker.submit(offer.job)
 
     def take_error(self, err: Exception) -> None:
-        """A message that could not be taken (e.g. failed to deserialize): counted, logged."""
+        """A message that could not be taken (input bytes that are not a PointCloud2, an error
+        from rclpy's take): counted, logged."""
         self.stats.add("take_errors")
         self._log("take_error", f"could not take a message: {type(err).__name__}: {err}")
 
