@@ -109,16 +109,18 @@ def batched_kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.
 
 def _leading_eigenvector(M: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Power iteration on non-negative symmetric matrices, batched over leading axes: (..., n, n) -> (..., n)."""
-    v = np.ones(M.shape[:-1])
+    v = np.ones(M.shape[:-1], M.dtype)[..., None]                          # (..., n, 1)
     for _ in range(iterations):
-        v = np.einsum("...ij,...j->...i", M, v)
-        v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-    return v
+        v = M @ v                                                          # BLAS, not einsum
+        v /= np.maximum(np.linalg.norm(v, axis=-2, keepdims=True), 1e-12)
+    return v[..., 0].astype(np.float64)
 
 
 def _residuals(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray) -> np.ndarray:
     """R (H, 3, 3), t (H, 3) -> residuals (H, K) of every correspondence."""
-    return np.linalg.norm(np.einsum("hij,kj->hki", R, src) + t[:, None] - tgt[None], axis=2)
+    diff = src[None] @ np.transpose(R, (0, 2, 1))                         # (H, K, 3), BLAS
+    diff += t[:, None] - tgt[None]
+    return np.sqrt(np.einsum("hki,hki->hk", diff, diff))
 
 
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
@@ -140,14 +142,17 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     d = np.abs(ds - cdist(tgt, tgt).astype(np.float32))
     hard = (d < d_thr).astype(np.float32)
     np.fill_diagonal(hard, 0.0)
-    soft = np.clip(1.0 - (d / d_thr) ** 2, 0.0, None).astype(np.float32)
+    soft = np.multiply(d, np.float32(1.0 / d_thr), out=d)                   # in place: K x K float32
+    np.square(soft, out=soft)
+    np.subtract(np.float32(1.0), soft, out=soft)
+    np.maximum(soft, np.float32(0.0), out=soft)
     np.fill_diagonal(soft, 0.0)
     del d
 
     # 2. seeds: spectral score x confidence, non-maximum suppression in the source.
     score = _leading_eigenvector(soft) * w
-    near = ds < cfg.nms_factor * thr
-    local_max = score >= np.where(near, score[None, :], -np.inf).max(axis=1)
+    near = ds < cfg.nms_factor * thr                                      # includes the diagonal
+    local_max = score >= (near * score.astype(np.float32)[None, :]).max(axis=1)   # scores are >= 0
     cand = np.flatnonzero(local_max & (score > 0))
     n_seeds = max(1, min(cfg.max_seeds, int(np.ceil(cfg.seed_ratio * K)), len(cand)))
     if len(cand) == 0:
