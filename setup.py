@@ -20,7 +20,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/params", glob("params/*.yaml") + glob("params/*.xml")),
         (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.pt")),
     ],
     install_requires=["setuptools"],

@@ -1,4 +1,5 @@
-"""Where the files that ship with cegc_ros are: the network weights and the parameter files.
+"""Where the files that ship with cegc_ros are: the network weights, the parameter files and
+the Fast DDS profile for publishers of huge clouds.
 
 There is one copy of each. An installed package (``pip install .``, ``colcon build``) has them
 under ``share/cegc_ros/`` of its prefix, found through the ament index; a source checkout has
@@ -6,6 +7,9 @@ them in the repository (``cegc_ros/weights/``, ``params/``), next to the package
 
     shipped_weights(ENGINE_WEIGHTS)          # Path of the weights the engine loads
     shipped_params("register_node.yaml")      # Path of the node's parameter file
+    shipped_fastdds_profile()                 # params/fastdds_large_clouds.xml
+    with fastdds_profile():                   # FASTRTPS_DEFAULT_PROFILES_FILE while a
+        node = rclpy.create_node(...)         # process's first node is created
 
 Standard library only (``ament_index_python`` is imported when it is needed), so tools that
 never load torch can use it.
@@ -13,12 +17,19 @@ never load torch can use it.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 PACKAGE = "cegc_ros"
 #: The weights the engine loads by default (cegc_ros.engine.default_weights).
 ENGINE_WEIGHTS = "cegc_views.pt"
 WEIGHT_NAMES = (ENGINE_WEIGHTS,)
+#: Fast DDS profile for processes that publish multi-megabyte clouds (heartbeat every 0.1 s).
+FASTDDS_PROFILE = "fastdds_large_clouds.xml"
+#: The variable Fast DDS 2.x (ROS 2 Jazzy) reads its profiles file from.
+FASTDDS_PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 _CHECKOUT = _PACKAGE_DIR.parent          # the repository root when running from a checkout
@@ -69,3 +80,47 @@ def shipped_weights(name: str) -> Path:
 def shipped_params(name: str = "register_node.yaml") -> Path:
     """The shipped parameter file ``name``; ShippedFileError if absent."""
     return _find("parameter file", name, _CHECKOUT / "params", "params")
+
+
+def shipped_fastdds_profile() -> Path:
+    """The shipped Fast DDS profile ``FASTDDS_PROFILE``; ShippedFileError if absent."""
+    return _find("Fast DDS profile", FASTDDS_PROFILE, _CHECKOUT / "params", "params")
+
+
+@contextmanager
+def fastdds_profile(choice: str = "default") -> Iterator[str | None]:
+    """``FASTRTPS_DEFAULT_PROFILES_FILE`` set for the block; yields the profiles file in effect
+    (None: Fast DDS's defaults).
+
+    Fast DDS reads the variable once per process, when the process's first ROS node (DDS
+    participant) is created: create that node inside the block. ``choice``: ``"default"``: the
+    user's setting when the variable is set (non-empty), or nothing when
+    ``DEFAULT_FASTRTPS_PROFILES.xml`` is in the working directory (Fast DDS loads that file by
+    itself), else the shipped profile; ``"none"``: no profiles file; anything else: the path of
+    a profiles file (FileNotFoundError if it is not a file). The variable is restored after.
+    """
+    old = os.environ.get(FASTDDS_PROFILE_ENV)
+    in_cwd = Path("DEFAULT_FASTRTPS_PROFILES.xml")
+    if choice == "none":
+        value = None
+    elif choice != "default":
+        if not Path(choice).is_file():
+            raise FileNotFoundError(f"Fast DDS profile {choice} is not a file")
+        value = str(Path(choice).resolve())
+    elif old:
+        value = old
+    elif in_cwd.is_file():
+        value = None
+    else:
+        value = str(shipped_fastdds_profile())
+    if value is None:
+        os.environ.pop(FASTDDS_PROFILE_ENV, None)
+    else:
+        os.environ[FASTDDS_PROFILE_ENV] = value
+    try:
+        yield value or (str(in_cwd.resolve()) if in_cwd.is_file() else None)
+    finally:
+        if old is None:
+            os.environ.pop(FASTDDS_PROFILE_ENV, None)
+        else:
+            os.environ[FASTDDS_PROFILE_ENV] = old

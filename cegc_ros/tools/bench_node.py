@@ -3,7 +3,7 @@
     python -m cegc_ros.tools.bench_node [--pairs 20] [--checkpoint PATH] [--rates 1,2,3]
         [--rate-pairs 16] [--responsiveness 300000,1000000,5000000] [--repeats 1]
         [--memory-minutes 10] [--memory-sizes 1500,20000,300000] [--skip latency,rate]
-        [--out bench.json]
+        [--fastdds-profile default|none|PATH] [--out bench.json]
 
 Sections (each can be skipped with ``--skip``; responsiveness and memory run only when asked):
   latency         ``Registrar.register`` in-process on generated 7Scenes-style test pairs, then
@@ -22,7 +22,12 @@ Sections (each can be skipped with ``--skip``; responsiveness and memory run onl
                   process sampled every second.
 
 DDS stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in a domain derived from
-the pid unless ROS_DOMAIN_ID is set. Errors end the benchmark with one line and exit code 1.
+the pid unless ROS_DOMAIN_ID is set. The bench's client publishes the clouds (and calls the
+services) with the Fast DDS profile of ``--fastdds-profile``: by default
+FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped ``params/fastdds_large_clouds.xml``, as a
+driver publishing huge clouds should; ``none``: Fast DDS's defaults (the comparison of
+docs/node.md). The node gets the environment the bench was started with. Errors end the
+benchmark with one line and exit code 1.
 """
 
 from __future__ import annotations
@@ -206,7 +211,9 @@ class _Node:
                                          stderr=subprocess.STDOUT)
         self.client = None
         try:
-            self.client = _Client(namespace)
+            from cegc_ros.paths import fastdds_profile
+            with fastdds_profile(args.fastdds_profile):   # the publishing side's profile
+                self.client = _Client(namespace)
             if not self.client.wait_connected(300.0, self.proc):
                 raise BenchError(f"register_node did not come up; see {self.log_path}")
         except BaseException:
@@ -451,6 +458,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory-sizes", default="1500,20000,300000")
     ap.add_argument("--replay-seconds", type=float, default=0.0,
                     help="older spelling of --memory-minutes, in seconds")
+    ap.add_argument("--fastdds-profile", default="default", metavar="default|none|PATH",
+                    help="Fast DDS profiles file of the publishing client (default: "
+                         "$FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped "
+                         "fastdds_large_clouds.xml; none: Fast DDS's defaults)")
     ap.add_argument("--out", help="write the figures as JSON here")
     args = ap.parse_args(argv)
     if args.replay_seconds and not args.memory_minutes:
@@ -459,13 +470,19 @@ def main(argv: list[str] | None = None) -> int:
     skip = {s for s in args.skip.split(",") if s}
 
     from cegc_ros.data.protocols import make_pairs
+    from cegc_ros.paths import FASTDDS_PROFILE_ENV, fastdds_profile
     report: dict[str, Any] = {
         "command": " ".join(["python -m cegc_ros.tools.bench_node", *argv]),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}, "
                    f"python {platform.python_version()}",
         "load_avg_at_start": os.getloadavg(),
+        "node_fastdds_profile": env.get(FASTDDS_PROFILE_ENV),
     }
     try:
+        with fastdds_profile(args.fastdds_profile) as profile:
+            report["client_fastdds_profile"] = profile
+        print("Fast DDS profile: client", profile, "node", report["node_fastdds_profile"],
+              flush=True)
         pairs = make_pairs("7scenes", "test", args.pairs)
         report["points_per_cloud"] = int(np.median([len(p.source) for p in pairs]))
         if "latency" not in skip:

@@ -3,6 +3,7 @@
     cegc-replay BAG [--rate R] [--lockstep] [--out FILE.json|FILE.csv] [--timeout S]
                     [--node-name register_node] [--node-namespace /]
                     [--source-topic T] [--target-topic T] [--pose-topic T]
+                    [--fastdds-profile default|none|PATH]
 
 The bag's ``/cegc/source`` and ``/cegc/target`` messages are published as they are stored
 (serialized CDR, no decoding) onto the node's ``source_cloud`` / ``target_cloud`` with
@@ -14,7 +15,10 @@ what an accuracy evaluation wants: no pair is dropped because the node was busy.
 
 Start the node with ``input.reliable:=true`` for replay; with the default sensor-data QoS
 (best effort) large clouds can be lost on the way. Unless ROS_AUTOMATIC_DISCOVERY_RANGE is
-set, replay keeps DDS discovery on this machine (LOCALHOST).
+set, replay keeps DDS discovery on this machine (LOCALHOST). Unless FASTRTPS_DEFAULT_PROFILES_FILE
+is set, replay publishes with the shipped Fast DDS profile for huge clouds
+(``params/fastdds_large_clouds.xml``: reliable writers repair lost fragments after 0.1 s, not
+3 s; docs/node.md); ``--fastdds-profile none`` publishes with Fast DDS's defaults.
 
 :func:`replay_bag` is the reusable part (``cegc-eval --through-node`` calls it).
 """
@@ -65,10 +69,13 @@ class ReplayResult:
     records: list[ReplayRecord]
     diagnostics: dict[str, str]          # the node's last /diagnostics key-values ({} if none)
     wall_s: float                        # whole replay, connection excluded
+    # The Fast DDS profiles file named when the replay's node was created (None: Fast DDS's
+    # defaults). Fast DDS applies it only if that was the process's first ROS node.
+    fastdds_profile: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"records": [asdict(r) for r in self.records], "diagnostics": self.diagnostics,
-                "wall_s": self.wall_s}
+                "wall_s": self.wall_s, "fastdds_profile": self.fastdds_profile}
 
 
 def cdr_header_stamp_ns(raw: bytes) -> int:
@@ -125,7 +132,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                node_name: str = "register_node", node_namespace: str = "/",
                source_topic: str | None = None, target_topic: str | None = None,
                pose_topic: str | None = None, pair_timeout: float = 30.0,
-               progress: bool = False) -> ReplayResult:
+               progress: bool = False, fastdds_profile: str = "default") -> ReplayResult:
     """Publish a pair bag into a running register_node and collect its poses.
 
     Args:
@@ -137,6 +144,11 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         node_name, node_namespace: where the node runs (its topics are derived from them).
         source_topic, target_topic, pose_topic: explicit topic names (override the above).
         pair_timeout: with ``lockstep``, give up on one pair's answer after this long (s).
+        fastdds_profile: Fast DDS profiles file of the publishing node, as
+            :func:`cegc_ros.paths.fastdds_profile` takes it: ``"default"`` (the user's
+            FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped profile for huge clouds),
+            ``"none"`` or a path. Takes effect only if no ROS node was created in this process
+            before (Fast DDS reads its profiles once per process).
 
     Returns:
         A :class:`ReplayResult`, one record per pair (by source stamp) in bag order.
@@ -144,6 +156,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     Raises:
         cegc_ros.data.bag.BagError: unreadable bag or missing topics.
         ReplayError: the node's topics never matched within ``connect_timeout``.
+        FileNotFoundError: ``fastdds_profile`` names no file.
     """
     if not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate}")
@@ -155,6 +168,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
+    from cegc_ros.paths import fastdds_profile as profile_env
     from msg_adapters.pose import pose_to_matrix
 
     clouds, gt = _scan_bag(Path(bag_path))
@@ -171,7 +185,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     status_name = f"{_topic(node_namespace, node_name)}: registration"  # the node's full name
     node = executor = spinner = None
     try:
-        node = rclpy.create_node("cegc_replay", context=context)
+        with profile_env(fastdds_profile) as profile:   # read when the participant is made
+            node = rclpy.create_node("cegc_replay", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         pubs = {TOPIC_SOURCE: node.create_publisher(PointCloud2, src_topic, qos),
                 TOPIC_TARGET: node.create_publisher(PointCloud2, tgt_topic, qos)}
@@ -259,7 +274,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                     T_gt=None if T_gt is None else T_gt.tolist(),
                     latency_s=None if got is None else got[1] - published[stamp]))
             last_diag = dict(diag)
-        return ReplayResult(records, last_diag, wall)
+        return ReplayResult(records, last_diag, wall, profile)
     finally:
         # Always, also after an error: a spin thread still inside rcl when the interpreter
         # exits aborts the process ("terminate called without an active exception").
@@ -376,6 +391,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--source-topic", help="default: <namespace>/source_cloud")
     ap.add_argument("--target-topic", help="default: <namespace>/target_cloud")
     ap.add_argument("--pose-topic", help="default: <namespace>/<node-name>/pose")
+    ap.add_argument("--fastdds-profile", default="default", metavar="default|none|PATH",
+                    help="Fast DDS profiles file to publish with (default: "
+                         "$FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped "
+                         "fastdds_large_clouds.xml; none: Fast DDS's defaults)")
     args = ap.parse_args(argv)
 
     from cegc_ros.data.bag import BagError
@@ -384,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
                             connect_timeout=args.connect_timeout, node_name=args.node_name,
                             node_namespace=args.node_namespace, source_topic=args.source_topic,
                             target_topic=args.target_topic, pose_topic=args.pose_topic,
-                            progress=sys.stderr.isatty())
+                            progress=sys.stderr.isatty(), fastdds_profile=args.fastdds_profile)
         info = summary(result)
         if args.out:
             write_records(result, args.out, {"bag": str(args.bag), "rate": args.rate,
