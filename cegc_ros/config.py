@@ -66,9 +66,10 @@ class EngineConfig:
         "Correspondence weights for the estimator: 'learned' (HOCE overlap x CAMS/CFM pair "
         "confidence) or 'uniform' (all 1: the ablation without the learned confidence).",
         choices=("learned", "uniform")))
-    max_correspondences: int = field(default=1500, metadata=_meta(
+    max_correspondences: int = field(default=3000, metadata=_meta(
         "Most correspondences handed to the estimator (the most confident; its cost grows as "
-        "the square of this).", 10, 10000))
+        "the square of this). 3000 was chosen on synthetic validation pairs (docs/pipeline.md).",
+        10, 10000))
     estimator: str = field(default="compatibility", metadata=_meta(
         "Pose from the weighted correspondences: 'compatibility' (second-order spatial "
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
