@@ -372,3 +372,17 @@ def test_ablation_rows_change_what_the_engine_does(tmp_path, tiny_checkpoint, sm
     assert len(np.unique(both[:, 0])) < len(both)
     # Another estimator on the same matches: another pose.
     assert results["cegc-svd"].T_target_source.tolist() != results["cegc+icp"].T_target_source.tolist()
+
+
+@pytest.mark.parametrize("protocol, definition", [
+    ("views", "Error(R) < 15 deg and Error(t) < 0.3 m"),
+    ("fragments", "Error(R) < 15 deg and Error(t) < 0.3 m"),
+    ("7scenes", "Error(R) < 5 deg")])
+def test_bag_recall_follows_the_protocol(protocol, definition, tmp_path):
+    """Different scans in metres (fragments, different views) are scored at 15 deg / 0.3 m."""
+    path = tmp_path / "bag"
+    write_pairs(path, _small_pairs()[:2], protocol=protocol, seed=0)
+    out = tmp_path / "eval"
+    assert E.main([str(path), "--methods", "sc2pcr", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["recall_definition"] == definition

@@ -127,6 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Bag protocols of two different scans in metres (fragments, different views with Kinect or
+#: LiDAR): scored at the real-fragment recall (15 deg / 0.3 m), the others at 5 deg.
+METRIC_PROTOCOLS = frozenset({"fragments", "views"})
+
+
 def _thresholds(args: argparse.Namespace, real_fragments: bool) -> metrics.RecallThresholds:
     base = metrics.REAL_FRAGMENT_RECALL if real_fragments else metrics.SEVEN_SCENES_RECALL
     rot = args.recall_rot if args.recall_rot is not None else base.rot_deg
@@ -166,7 +171,8 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
             pairs = pairs[: args.limit]
         title = f"cegc-eval: {Path(args.bag).name}"
         settings["source"] = f"bag {args.bag}"
-        real_fragments = {p.info.get("protocol") for p in pairs} == {"fragments"}
+        protocols = {p.info.get("protocol") for p in pairs}
+        real_fragments = bool(protocols) and protocols <= METRIC_PROTOCOLS   # 15 deg / 0.3 m
         node_methods = [m for m in methods if m in CEGC_METHODS] if args.through_node else []
         if node_methods:
             node_outcomes = run_through_node(
