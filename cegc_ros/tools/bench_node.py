@@ -2,6 +2,7 @@
 
     python -m cegc_ros.tools.bench_node [--pairs 20] [--checkpoint PATH] [--rates 1,2,3]
         [--rate-pairs 16] [--responsiveness 300000,1000000,5000000] [--repeats 1]
+        [--responsiveness-mode pairs|sequential] [--sequence-frames 10] [--sequence-rate 2]
         [--memory-minutes 10] [--memory-sizes 1500,20000,300000] [--skip latency,rate]
         [--fastdds-profile default|none|PATH] [--out bench.json]
 
@@ -17,6 +18,14 @@ Sections (each can be skipped with ``--skip``; responsiveness and memory run onl
                   process (the design before issue 15). While the engine works, the bench calls
                   ``describe_parameters`` back to back and records the answer times and the gaps
                   between /diagnostics messages.
+                  ``--responsiveness-mode sequential``: instead, a node started with
+                  ``input.mode:=sequential`` (engine in its own process, as shipped) gets, per
+                  size, ``--sequence-frames`` clouds on ``cloud`` at ``--sequence-rate`` Hz (a
+                  robot's depth camera moving through a generated room, ~70k points per cloud
+                  densified like the pairs; a fresh node per size), with the same
+                  measurements from the first cloud until the node has taken the last.
+                  The same clouds are then fed to ``KeyframeOdometry`` in the bench's process,
+                  which gives the time of each odometry stage (what the node's worker runs).
   memory          ``--memory-minutes`` of pairs cycling through ``--memory-sizes`` points, one
                   pair per second, with the resident memory of the node process and of its engine
                   process sampled every second.
@@ -105,7 +114,7 @@ def densify(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
 class _Client:
     """Publishes clouds to a node and records its poses, diagnostics and service answers."""
 
-    def __init__(self, namespace: str = "/") -> None:
+    def __init__(self, namespace: str = "/", sequential: bool = False) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
@@ -120,8 +129,8 @@ class _Client:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("cegc_bench", context=self.context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_src = self.node.create_publisher(PointCloud2, f"{base}/source_cloud", qos)
-        self.pub_tgt = self.node.create_publisher(PointCloud2, f"{base}/target_cloud", qos)
+        topics = ("cloud",) if sequential else ("source_cloud", "target_cloud")
+        self.pubs = [self.node.create_publisher(PointCloud2, f"{base}/{t}", qos) for t in topics]
         self.pose_topic = f"{base}/register_node/pose"
         self.describe = self.node.create_client(
             DescribeParameters, f"{base}/register_node/describe_parameters")
@@ -154,18 +163,19 @@ class _Client:
     def wait_connected(self, timeout: float, proc: subprocess.Popen) -> bool:
         end = time.monotonic() + timeout
         while time.monotonic() < end and proc.poll() is None:
-            if self.pub_src.get_subscription_count() and self.pub_tgt.get_subscription_count() \
+            if all(p.get_subscription_count() for p in self.pubs) \
                     and self.node.count_publishers(self.pose_topic) and self.diag:
                 return True
             time.sleep(0.1)
         return False
 
-    def send(self, src_msg: Any, tgt_msg: Any, stamp: int) -> float:
-        for m in (src_msg, tgt_msg):
+    def send(self, *msgs: Any, stamp: int) -> float:
+        """Publish one message per input topic (source, target; or the one cloud), stamped."""
+        for m in msgs:
             m.header.stamp.sec, m.header.stamp.nanosec = stamp // SEC, stamp % SEC
         t0 = time.perf_counter()
-        self.pub_src.publish(src_msg)
-        self.pub_tgt.publish(tgt_msg)
+        for pub, m in zip(self.pubs, msgs, strict=True):
+            pub.publish(m)
         return t0
 
     def describe_s(self, timeout: float = 60.0) -> float | None:
@@ -195,16 +205,26 @@ def _messages(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[Any, Any
              xyz_to_cloud(t, Header(frame_id="cegc_target"))) for s, t in pairs]
 
 
+def node_command(args: Any, engine: str, namespace: str, extra: tuple[str, ...] = (),
+                 sequential: bool = False) -> list[str]:
+    """The command line of the benchmark's register_node subprocess."""
+    cmd = [sys.executable, "-m", "cegc_ros.tools.bench_node", "--serve", engine,
+           "--ros-args", "--params-file", args.params_file, "-r", f"__ns:={namespace}",
+           "-p", "input.reliable:=true", *extra]
+    if sequential:
+        cmd += ["-p", "input.mode:=sequential"]
+    if args.checkpoint:
+        cmd += ["-p", f"engine.checkpoint:={Path(args.checkpoint).resolve()}"]
+    return cmd
+
+
 class _Node:
     """A register_node subprocess (``engine``: 'process' as shipped, or 'inline') + client."""
 
     def __init__(self, args: Any, env: dict[str, str], engine: str = "process",
-                 namespace: str = "/bench", extra: tuple[str, ...] = ()) -> None:
-        cmd = [sys.executable, "-m", "cegc_ros.tools.bench_node", "--serve", engine,
-               "--ros-args", "--params-file", args.params_file, "-r", f"__ns:={namespace}",
-               "-p", "input.reliable:=true", *extra]
-        if args.checkpoint:
-            cmd += ["-p", f"engine.checkpoint:={Path(args.checkpoint).resolve()}"]
+                 namespace: str = "/bench", extra: tuple[str, ...] = (),
+                 sequential: bool = False) -> None:
+        cmd = node_command(args, engine, namespace, extra, sequential)
         self.log_path = Path(tempfile.mkdtemp(prefix="bench_node_")) / "register_node.log"
         with self.log_path.open("w") as log:
             self.proc = subprocess.Popen(cmd, env=env, cwd=str(REPO), stdout=log,
@@ -213,7 +233,7 @@ class _Node:
         try:
             from cegc_ros.paths import fastdds_profile
             with fastdds_profile(args.fastdds_profile):   # the publishing side's profile
-                self.client = _Client(namespace)
+                self.client = _Client(namespace, sequential)
             if not self.client.wait_connected(300.0, self.proc):
                 raise BenchError(f"register_node did not come up; see {self.log_path}")
         except BaseException:
@@ -269,7 +289,7 @@ def bench_latency(args: Any, env: dict[str, str], pairs: list[Any], report: dict
         lat, stamp = [], 1_000 * SEC
         for src, tgt in _messages([(p.source, p.target) for p in pairs]):
             stamp += SEC // 2
-            t0 = c.send(src, tgt, stamp)
+            t0 = c.send(src, tgt, stamp=stamp)
             with c.cond:
                 if c.cond.wait_for(lambda s=stamp: s in c.poses, 120.0):
                     lat.append(c.poses[stamp] - t0)
@@ -302,7 +322,7 @@ def bench_rate(args: Any, env: dict[str, str], pairs: list[Any], report: dict) -
                 delay = t_start + k / rate - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
-                c.send(src, tgt, stamp)
+                c.send(src, tgt, stamp=stamp)
                 sent.append(stamp)
             with c.cond:
                 c.cond.wait_for(lambda s=sent[-1]: s in c.poses, 60.0)
@@ -319,8 +339,35 @@ def bench_rate(args: Any, env: dict[str, str], pairs: list[Any], report: dict) -
         node.close()
 
 
+def _watch(c: _Client, t0: float, done: Any, timeout: float) -> dict[str, Any]:
+    """While the node works (from ``t0`` until ``done()``, called under ``c.cond``, returns
+    the time the work ended, or ``timeout`` s): ``describe_parameters`` back to back (0.1 s
+    apart) and the /diagnostics messages. The figures of one responsiveness row."""
+    answers: list[float | None] = []
+    while True:
+        with c.cond:
+            t_end = done()
+        if t_end is not None or time.perf_counter() - t0 > timeout:
+            break
+        answers.append(c.describe_s(timeout=timeout))
+        time.sleep(0.1)
+    window_end = t_end if t_end is not None else time.perf_counter()
+    with c.cond:
+        times = [t for t in c.diag_times if t0 <= t <= window_end]
+    answered = [a for a in answers if a is not None]
+    return {"done_after_s": None if t_end is None else round(t_end - t0, 2),
+            "describe_calls": len(answers), "describe_unanswered": len(answers) - len(answered),
+            **{f"describe_{k}": v for k, v in _pct(answered).items()
+               if k in ("p50_ms", "max_ms")},
+            "diagnostics_received": len(times),
+            "diagnostics_max_gap_s": round(float(np.diff([t0, *times, window_end]).max()), 2)}
+
+
 def bench_responsiveness(args: Any, env: dict[str, str], pairs: list[Any],
                          report: dict) -> None:
+    if args.responsiveness_mode == "sequential":
+        bench_responsiveness_sequential(args, env, pairs, report)
+        return
     sizes = [int(s) for s in args.responsiveness.split(",")]
     rows = []
     for engine in ("process", "inline"):
@@ -334,31 +381,118 @@ def bench_responsiveness(args: Any, env: dict[str, str], pairs: list[Any],
                 stamp = (20_000 + k) * SEC
                 time.sleep(1.0)
                 idle = [c.describe_s() for _ in range(3)]
-                t0 = c.send(src, tgt, stamp)
+                t0 = c.send(src, tgt, stamp=stamp)
                 del src, tgt
-                answers: list[float | None] = []
-                while True:
-                    with c.cond:
-                        if stamp in c.poses or time.perf_counter() - t0 > args.pair_timeout:
-                            break
-                    answers.append(c.describe_s(timeout=args.pair_timeout))
-                    time.sleep(0.1)
-                with c.cond:
-                    t_pose = c.poses.get(stamp)
-                    times = [t for t in c.diag_times if t0 <= t <= (t_pose or time.perf_counter())]
-                edges = [t0, *times, t_pose or time.perf_counter()]
-                answered = [a for a in answers if a is not None]
-                rows.append({
-                    "engine": engine, "points": n,
-                    "pose_after_s": None if t_pose is None else round(t_pose - t0, 2),
-                    "describe_idle_ms": _pct([a for a in idle if a is not None]).get("p50_ms"),
-                    "describe_calls": len(answers), "describe_unanswered": len(answers)
-                    - len(answered), **{f"describe_{k}": v for k, v in _pct(answered).items()
-                                        if k in ("p50_ms", "max_ms")},
-                    "diagnostics_received": len(times),
-                    "diagnostics_max_gap_s": round(float(np.diff(edges).max()), 2),
-                })
+                w = _watch(c, t0, lambda s=stamp: c.poses.get(s), args.pair_timeout)
+                rows.append({"engine": engine, "points": n,
+                             "pose_after_s": w.pop("done_after_s"),
+                             "describe_idle_ms": _pct([a for a in idle if a is not None])
+                             .get("p50_ms"), **w})
                 print("responsiveness", rows[-1], flush=True)
+        finally:
+            node.close()
+    report["responsiveness"] = rows
+
+
+def sequence_clouds(n: int, frames: int, rate: float, first: int = 0,
+                    scene_seed: int = 0) -> list[np.ndarray]:
+    """``frames`` clouds of ``n`` points each seen by a robot moving through a generated room
+    (:func:`cegc_ros.data.sequences.make_room_sequence`, one cloud per 1/``rate`` s of its
+    trajectory, from cloud ``first`` on), each densified with :func:`densify`."""
+    from cegc_ros.data.sequences import make_room_sequence
+
+    step = max(1, round(30.0 / rate))          # the trajectory runs at 30 frames/s
+    seq = make_room_sequence(scene_seed, frames, frame_step=step, first_frame=first * step,
+                             pixel_stride=2)
+    return [densify(c, n, first + f) for f, c in enumerate(seq.clouds)]
+
+
+def _odometry_stages(clouds: list[np.ndarray], period_ns: int) -> dict[str, Any]:
+    """The clouds through KeyframeOdometry in this process: ms per stage as 'p50 / max'."""
+    from cegc_ros.sequential import KeyframeOdometry
+
+    odo = KeyframeOdometry()
+    stages: dict[str, list[float]] = {}
+    methods = []
+    for f, xyz in enumerate(clouds):
+        fr = odo.feed(40_000 * SEC + f * period_ns, xyz)
+        methods.append(fr.method)
+        for k, v in fr.timings.items():
+            stages.setdefault(k, []).append(v)
+    out: dict[str, Any] = {"methods": methods}
+    for k, v in stages.items():
+        p = _pct(v)
+        out[k] = f"{p['p50_ms']} / {p['max_ms']}"
+    return out
+
+
+def bench_responsiveness_sequential(args: Any, env: dict[str, str], pairs: list[Any],
+                                    report: dict) -> None:
+    """The responsiveness section for ``--responsiveness-mode sequential`` (module doc)."""
+    from std_msgs.msg import Header
+
+    from msg_adapters.point_cloud2 import xyz_to_cloud
+    sizes = [int(s) for s in args.responsiveness.split(",")]
+    period_ns = int(SEC / args.sequence_rate)
+    rows = []
+    for k, n in enumerate(sizes * args.repeats):
+        clouds = sequence_clouds(n, args.sequence_frames, args.sequence_rate)
+        node = _Node(args, env, namespace=f"/resp_sequential_{k}",
+                     extra=("-p", "diagnostics.period:=0.5"), sequential=True)
+        try:
+            c = node.client
+            msgs = [xyz_to_cloud(xyz, Header(frame_id="cegc_cloud")) for xyz in clouds]
+            time.sleep(1.0)
+            idle = [c.describe_s() for _ in range(3)]
+            with c.cond:
+                dropped0 = int(c.diag.get("pairs_dropped", 0))
+                base = int(c.diag.get("pairs_done", 0)) + dropped0
+                methods0 = [int(c.diag.get(m, 0)) for m in ("tracked", "recoveries")]
+            stamps = [40_000 * SEC + f * period_ns for f in range(len(msgs))]
+            sent: list[float] = []
+
+            def publish(msgs: list[Any] = msgs, stamps: list[int] = stamps,
+                        sent: list[float] = sent) -> None:
+                t_start = time.perf_counter()
+                for f, (m, s) in enumerate(zip(msgs, stamps, strict=True)):
+                    delay = t_start + f / args.sequence_rate - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                    sent.append(c.send(m, stamp=s))
+
+            def done(base: int = base, stamps: list[int] = stamps,
+                     sent: list[float] = sent) -> float | None:
+                """The last cloud's pose time; now once the node has taken (done or
+                dropped) every cloud without a pose for the last; else None."""
+                if len(sent) < len(stamps):
+                    return None
+                if stamps[-1] in c.poses:
+                    return c.poses[stamps[-1]]
+                taken = int(c.diag.get("pairs_done", 0)) + int(c.diag.get("pairs_dropped", 0))
+                return time.perf_counter() if taken - base >= len(stamps) else None
+
+            pub = threading.Thread(target=publish, daemon=True)
+            t0 = time.perf_counter()
+            pub.start()
+            w = _watch(c, t0, done, args.pair_timeout)
+            pub.join()
+            del msgs
+            time.sleep(0.6)       # the counters of the diagnostics after the last cloud
+            with c.cond:
+                got = sum(s in c.poses for s in stamps)
+                diag = dict(c.diag)
+            rows.append({"mode": "sequential", "points": n, "frames": len(stamps),
+                         "rate_hz": args.sequence_rate, "poses": got,
+                         "last_taken_after_s": w.pop("done_after_s"),
+                         "describe_idle_ms": _pct([a for a in idle if a is not None])
+                         .get("p50_ms"), **w,
+                         "dropped": int(diag.get("pairs_dropped", 0)) - dropped0,
+                         **{m: int(diag.get(m, 0)) - m0
+                            for m, m0 in zip(("tracked", "recoveries"), methods0, strict=True)},
+                         "node_odometry_p50_ms": diag.get("odometry_p50_ms"),
+                         "load_avg_1min": round(os.getloadavg()[0], 2)})
+            rows[-1]["odometry_stages_ms_p50_max"] = _odometry_stages(clouds, period_ns)
+            print("responsiveness", rows[-1], flush=True)
         finally:
             node.close()
     report["responsiveness"] = rows
@@ -388,7 +522,7 @@ def bench_memory(args: Any, env: dict[str, str], pairs: list[Any], report: dict)
                 continue
             stamp += SEC
             src, tgt = msgs[k % len(msgs)]
-            c.send(src, tgt, stamp)
+            c.send(src, tgt, stamp=stamp)
             k += 1
         time.sleep(3.0)
         with c.cond:
@@ -436,10 +570,8 @@ def serve(engine: str, argv: list[str]) -> int:
     return node_main(["register_node", *argv], engine_factory=factory)
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["--serve"]:
-        return serve(argv[1], argv[2:])
+def parse_args(argv: list[str]) -> Any:
+    """The benchmark's options (exits 2 with one line for bad usage)."""
     ap = OneLineParser(prog="bench_node", description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=20)
     ap.add_argument("--checkpoint", default="", help="default: the shipped weights")
@@ -451,6 +583,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated cloud sizes for the responsiveness section")
     ap.add_argument("--repeats", type=int, default=1,
                     help="responsiveness: pairs per size (the sizes cycle)")
+    ap.add_argument("--responsiveness-mode", choices=("pairs", "sequential"), default="pairs",
+                    help="responsiveness: huge pairs into pairs-mode nodes, or a stream of "
+                         "clouds into a node with input.mode sequential")
+    ap.add_argument("--sequence-frames", type=int, default=10,
+                    help="responsiveness, sequential: clouds per size")
+    ap.add_argument("--sequence-rate", type=float, default=2.0,
+                    help="responsiveness, sequential: clouds per second")
     ap.add_argument("--pair-timeout", type=float, default=600.0,
                     help="responsiveness: give up on a pose after this many seconds")
     ap.add_argument("--memory-minutes", type=float, default=0.0,
@@ -466,6 +605,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.replay_seconds and not args.memory_minutes:
         args.memory_minutes = args.replay_seconds / 60.0
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--serve"]:
+        return serve(argv[1], argv[2:])
+    args = parse_args(argv)
     env = _env()
     skip = {s for s in args.skip.split(",") if s}
 
