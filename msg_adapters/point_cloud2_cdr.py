@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["CdrError", "CdrHeader", "CdrPointCloud2", "CdrPointField", "CdrStamp",
-           "parse_point_cloud2"]
+           "header_stamp_ns", "parse_point_cloud2"]
 
 #: Encapsulation identifiers of plain CDR (XCDR1): the first two bytes of the buffer.
 _CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
@@ -110,19 +110,18 @@ class _Reader:
     def _align(self, size: int) -> None:
         self.pos += -(self.pos - 4) % size
 
-    def u32(self, what: str) -> int:
-        self._align(4)
-        self._need(4, what)
-        (value,) = self._u32.unpack_from(self.buf, self.pos)
-        self.pos += 4
+    def _scalar(self, kind: struct.Struct, what: str) -> int:
+        self._align(kind.size)
+        self._need(kind.size, what)
+        (value,) = kind.unpack_from(self.buf, self.pos)
+        self.pos += kind.size
         return value
 
+    def u32(self, what: str) -> int:
+        return self._scalar(self._u32, what)
+
     def i32(self, what: str) -> int:
-        self._align(4)
-        self._need(4, what)
-        (value,) = self._i32.unpack_from(self.buf, self.pos)
-        self.pos += 4
-        return value
+        return self._scalar(self._i32, what)
 
     def u8(self, what: str) -> int:
         self._need(1, what)
@@ -151,6 +150,33 @@ class _Reader:
             raise CdrError(f"serialized PointCloud2 {what} is not UTF-8: {err}") from None
 
 
+def _open(buffer: Any) -> _Reader:
+    """A reader after the encapsulation header of ``buffer`` (plain CDR, either byte order)."""
+    try:
+        view = memoryview(buffer).cast("B")
+    except TypeError as err:
+        raise CdrError(f"serialized PointCloud2 must be a byte buffer, got "
+                       f"{type(buffer).__name__}: {err}") from None
+    if len(view) < 4:
+        raise CdrError(f"serialized PointCloud2 of {len(view)} bytes has no encapsulation header")
+    kind = bytes(view[:2])
+    if kind not in (_CDR_BE, _CDR_LE):
+        raise CdrError(f"serialized PointCloud2 has encapsulation 0x{kind.hex()}, expected "
+                       "plain CDR (0x0000 big endian or 0x0001 little endian)")
+    return _Reader(view, ">" if kind == _CDR_BE else "<")
+
+
+def _stamp(r: _Reader) -> CdrStamp:
+    return CdrStamp(r.i32("header.stamp.sec"), r.u32("header.stamp.nanosec"))
+
+
+def header_stamp_ns(buffer: Any) -> int:
+    """The header stamp in nanoseconds of a serialized PointCloud2 (the first field of the
+    message), without reading the rest; CdrError as :func:`parse_point_cloud2`."""
+    stamp = _stamp(_open(buffer))
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def parse_point_cloud2(buffer: Any) -> CdrPointCloud2:
     """Read a serialized sensor_msgs/PointCloud2 without copying its points.
 
@@ -166,20 +192,9 @@ def parse_point_cloud2(buffer: Any) -> CdrPointCloud2:
         CdrError: the buffer is not a serialized PointCloud2 (named part and offset). The
             layout itself (fields, steps, sizes) is not checked here: ``cloud_to_xyz`` does.
     """
-    try:
-        view = memoryview(buffer).cast("B")
-    except TypeError as err:
-        raise CdrError(f"serialized PointCloud2 must be a byte buffer, got "
-                       f"{type(buffer).__name__}: {err}") from None
-    if len(view) < 4:
-        raise CdrError(f"serialized PointCloud2 of {len(view)} bytes has no encapsulation header")
-    kind = bytes(view[:2])
-    if kind not in (_CDR_BE, _CDR_LE):
-        raise CdrError(f"serialized PointCloud2 has encapsulation 0x{kind.hex()}, expected "
-                       "plain CDR (0x0000 big endian or 0x0001 little endian)")
-    r = _Reader(view, ">" if kind == _CDR_BE else "<")
-    sec = r.i32("header.stamp.sec")
-    nanosec = r.u32("header.stamp.nanosec")
+    r = _open(buffer)
+    view = r.buf
+    stamp = _stamp(r)
     frame_id = r.string("header.frame_id")
     height = r.u32("height")
     width = r.u32("width")
@@ -201,7 +216,7 @@ def parse_point_cloud2(buffer: Any) -> CdrPointCloud2:
     data = np.frombuffer(view, dtype=np.uint8, count=size, offset=r.pos)   # (size,) a view
     r.pos += size
     is_dense = r.boolean("is_dense")
-    return CdrPointCloud2(header=CdrHeader(CdrStamp(sec, nanosec), frame_id), height=height,
+    return CdrPointCloud2(header=CdrHeader(stamp, frame_id), height=height,
                           width=width, fields=fields, is_bigendian=is_bigendian,
                           point_step=point_step, row_step=row_step, data=data,
                           is_dense=is_dense)

@@ -29,7 +29,6 @@ import argparse
 import csv
 import json
 import os
-import struct
 import sys
 import threading
 import time
@@ -78,15 +77,6 @@ class ReplayResult:
                 "wall_s": self.wall_s, "fastdds_profile": self.fastdds_profile}
 
 
-def cdr_header_stamp_ns(raw: bytes) -> int:
-    """The header stamp (ns) of a serialized message that starts with std_msgs/Header."""
-    if len(raw) < 12:
-        raise ValueError(f"serialized message of {len(raw)} bytes has no header")
-    order = "<" if raw[1] & 1 else ">"            # encapsulation id: CDR_LE = 0x0001
-    sec, nanosec = struct.unpack_from(order + "iI", raw, 4)
-    return sec * 1_000_000_000 + nanosec
-
-
 def _topic(namespace: str, name: str) -> str:
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     return f"{ns}/{name}"
@@ -99,6 +89,7 @@ def _scan_bag(bag_path: Path) -> tuple[list[tuple[int, str, bytes]], dict[int, n
     from rosbags.rosbag2 import Reader
 
     from cegc_ros.data.bag import BagError
+    from msg_adapters.nav import time_to_ns
     from msg_adapters.pose import pose_to_matrix
 
     if not bag_path.exists():
@@ -117,7 +108,7 @@ def _scan_bag(bag_path: Path) -> tuple[list[tuple[int, str, bytes]], dict[int, n
                 raw = bytes(raw)
                 if conn.topic == TOPIC_GT:
                     msg = deserialize_message(raw, PoseStamped)
-                    gt[cdr_header_stamp_ns(raw)] = pose_to_matrix(msg.pose)
+                    gt[time_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
                 else:
                     clouds.append((int(log_ns), conn.topic, raw))
     except BagError:
@@ -169,6 +160,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     from sensor_msgs.msg import PointCloud2
 
     from cegc_ros.paths import fastdds_profile as profile_env
+    from msg_adapters.nav import time_to_ns
+    from msg_adapters.point_cloud2_cdr import header_stamp_ns
     from msg_adapters.pose import pose_to_matrix
 
     clouds, gt = _scan_bag(Path(bag_path))
@@ -193,7 +186,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
 
         def on_pose(msg: Any) -> None:
             now = time.monotonic()
-            stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+            stamp = time_to_ns(msg.header.stamp)
             with answered:
                 poses[stamp] = (pose_to_matrix(msg.pose), now)
                 answered.notify_all()
@@ -235,7 +228,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         log0 = clouds[0][0] if clouds else 0
         try:
             for log_ns, topic, raw in clouds:
-                stamp = cdr_header_stamp_ns(raw)
+                stamp = header_stamp_ns(raw)
                 if not lockstep:
                     delay = t_start + (log_ns - log0) / 1e9 / rate - time.monotonic()
                     if delay > 0:
