@@ -55,6 +55,40 @@ def stamp_of(msg: Any) -> int:
     return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
 
 
+class OutputRecorder:
+    """Messages received per output name (callbacks from any thread) and the newest
+    diagnostics status of the node under test (``status_name``: "<full name>: registration")."""
+
+    def __init__(self, status_name: str) -> None:
+        self.status_name = status_name
+        self.lock = threading.Lock()
+        self.got: dict[str, list[Any]] = {}
+
+    def keeper(self, name: str) -> Callable[[Any], None]:
+        """A subscription callback that records into ``name``."""
+        self.got[name] = []
+
+        def cb(msg: Any) -> None:
+            with self.lock:
+                self.got[name].append(msg)
+        return cb
+
+    def outputs(self, name: str) -> list[Any]:
+        with self.lock:
+            return list(self.got[name])
+
+    def by_stamp(self, name: str) -> dict[int, Any]:
+        return {stamp_of(m): m for m in self.outputs(name)}
+
+    def diagnostics(self) -> dict[str, str]:
+        """Key-values of the newest diagnostics status of the node under test."""
+        for arr in reversed(self.outputs("diagnostics")):
+            for st in arr.status:
+                if st.name == self.status_name:
+                    return {kv.key: kv.value for kv in st.values}
+        return {}
+
+
 def make_probe(node_name: str = "register_node", namespace: str = "/",
                context: Any = None) -> Any:
     """A node that publishes the two inputs and records every output of the node under test."""
@@ -68,37 +102,21 @@ def make_probe(node_name: str = "register_node", namespace: str = "/",
     base = namespace.rstrip("/")
     status_name = f"{base}/{node_name}: registration"   # the node's fully qualified name
 
-    class Probe(Node):
+    class Probe(Node, OutputRecorder):
         def __init__(self) -> None:
-            super().__init__("cegc_test_probe", context=context)
+            Node.__init__(self, "cegc_test_probe", context=context)
+            OutputRecorder.__init__(self, status_name)
             qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = {s: self.create_publisher(PointCloud2, f"{base}/{s}_cloud", qos)
                         for s in ("source", "target")}
-            self.lock = threading.Lock()
-            self.got: dict[str, list[Any]] = {}
             outputs = {"pose": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                        "source_overlap": PointCloud2, "target_overlap": PointCloud2,
                        "markers": MarkerArray}
             for name, kind in outputs.items():
-                self.got[name] = []
                 self.create_subscription(kind, f"{base}/{node_name}/{name}",
-                                         self._keep(name), 50)
-            self.got["diagnostics"] = []
-            self.create_subscription(DiagnosticArray, "/diagnostics", self._keep("diagnostics"),
+                                         self.keeper(name), 50)
+            self.create_subscription(DiagnosticArray, "/diagnostics", self.keeper("diagnostics"),
                                      50)
-
-        def _keep(self, name: str) -> Callable[[Any], None]:
-            def cb(msg: Any) -> None:
-                with self.lock:
-                    self.got[name].append(msg)
-            return cb
-
-        def outputs(self, name: str) -> list[Any]:
-            with self.lock:
-                return list(self.got[name])
-
-        def by_stamp(self, name: str) -> dict[int, Any]:
-            return {stamp_of(m): m for m in self.outputs(name)}
 
         def send(self, source: Any, target: Any) -> None:
             self.pub["source"].publish(source)
@@ -107,14 +125,6 @@ def make_probe(node_name: str = "register_node", namespace: str = "/",
         def connected(self) -> bool:
             return all(p.get_subscription_count() > 0 for p in self.pub.values()) and \
                 self.count_publishers(f"{base}/{node_name}/pose") > 0
-
-        def diagnostics(self) -> dict[str, str]:
-            """Key-values of the newest diagnostics status of the node under test."""
-            for arr in reversed(self.outputs("diagnostics")):
-                for st in arr.status:
-                    if st.name == status_name:
-                        return {kv.key: kv.value for kv in st.values}
-            return {}
 
     return Probe()
 

@@ -73,30 +73,16 @@ class Manager:
                     for t in ("cloud", "source_cloud", "target_cloud")}
         self.change = self.node.create_client(ChangeState, f"/{name}/change_state")
         self.get = self.node.create_client(GetState, f"/{name}/get_state")
-        self.lock = threading.Lock()
-        self.got: dict[str, list] = {"odometry": [], "pose": [], "diagnostics": []}
+        self.recorder = rh.OutputRecorder(f"/{name}: registration")
         for key, kind, topic in (("odometry", Odometry, f"/{name}/odometry"),
                                  ("pose", PoseStamped, f"/{name}/pose"),
                                  ("diagnostics", DiagnosticArray, "/diagnostics")):
-            self.node.create_subscription(kind, topic, lambda m, k=key: self._keep(k, m), 50)
+            self.node.create_subscription(kind, topic, self.recorder.keeper(key), 50)
+        self.outputs = self.recorder.outputs
+        self.diagnostics = self.recorder.diagnostics
         self.ex = SingleThreadedExecutor(context=self.context)
         self.ex.add_node(self.node)
         threading.Thread(target=self.ex.spin, daemon=True).start()
-
-    def _keep(self, key: str, msg) -> None:
-        with self.lock:
-            self.got[key].append(msg)
-
-    def outputs(self, key: str) -> list:
-        with self.lock:
-            return list(self.got[key])
-
-    def diagnostics(self) -> dict[str, str]:
-        for arr in reversed(self.outputs("diagnostics")):
-            for st in arr.status:
-                if st.name == f"/{self.name}: registration":
-                    return {kv.key: kv.value for kv in st.values}
-        return {}
 
     def _call(self, client, request):
         assert client.wait_for_service(timeout_sec=TIMEOUT), f"no service {client.srv_name}"

@@ -46,41 +46,21 @@ def make_seq_probe(context, node: str = "register_node"):
 
     from msg_adapters.transform import tf_message_class
 
-    class SeqProbe(Node):
+    class SeqProbe(Node, rh.OutputRecorder):
         def __init__(self) -> None:
-            super().__init__("cegc_seq_probe", context=context)
+            Node.__init__(self, "cegc_seq_probe", context=context)
+            rh.OutputRecorder.__init__(self, f"/{node}: registration")
             qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = self.create_publisher(PointCloud2, "/cloud", qos)
-            self.lock = threading.Lock()
-            self.got: dict[str, list] = {}
             outputs = {"odometry": Odometry, "path": Path, "pose": PoseStamped,
                        "pose_with_covariance": PoseWithCovarianceStamped}
             for name, kind in outputs.items():
-                self._listen(name, kind, f"/{node}/{name}")
-            self._listen("diagnostics", DiagnosticArray, "/diagnostics")
+                self.create_subscription(kind, f"/{node}/{name}", self.keeper(name), 50)
+            self.create_subscription(DiagnosticArray, "/diagnostics", self.keeper("diagnostics"),
+                                     50)
             tf = tf_message_class()
             if tf is not None:
-                self._listen("tf", tf, "/tf")
-            self.status_name = f"/{node}: registration"
-
-        def _listen(self, name, kind, topic) -> None:
-            self.got[name] = []
-
-            def keep(msg, name=name):
-                with self.lock:
-                    self.got[name].append(msg)
-            self.create_subscription(kind, topic, keep, 50)
-
-        def outputs(self, name: str) -> list:
-            with self.lock:
-                return list(self.got[name])
-
-        def diagnostics(self) -> dict[str, str]:
-            for arr in reversed(self.outputs("diagnostics")):
-                for st in arr.status:
-                    if st.name == self.status_name:
-                        return {kv.key: kv.value for kv in st.values}
-            return {}
+                self.create_subscription(tf, "/tf", self.keeper("tf"), 50)
 
     return SeqProbe()
 
@@ -126,10 +106,6 @@ def seq_node():
     rclpy.try_shutdown(context=context)
 
 
-def _by_stamp(probe, name: str) -> dict[int, object]:
-    return {rh.stamp_of(m): m for m in probe.outputs(name)}
-
-
 def _fresh_diag(probe, timeout: float = 10.0) -> dict[str, str]:
     n = len(probe.outputs("diagnostics"))
     assert rh.wait_for(lambda: len(probe.outputs("diagnostics")) > n, timeout)
@@ -152,9 +128,9 @@ def test_sequence_gives_odometry_near_ground_truth_and_skips_a_bad_cloud(seq_nod
                                >= 1, 60.0), probe.diagnostics()
         probe.pub.publish(rh.cloud(xyz, seq.frame_id, int(stamp)))
         # Generous: the first cloud waits for discovery, a slow one for ICP on a busy machine.
-        assert rh.wait_for(lambda s=int(stamp): s in _by_stamp(probe, "odometry"), 120.0), \
+        assert rh.wait_for(lambda s=int(stamp): s in probe.by_stamp("odometry"), 120.0), \
             (k, proc.poll(), probe.diagnostics())
-    odom = _by_stamp(probe, "odometry")
+    odom = probe.by_stamp("odometry")
     assert sorted(odom) == sorted(int(s) for s in seq.stamps_ns)     # every good cloud, once
     assert len(probe.outputs("odometry")) == NUM_CLOUDS              # none for the bad one
 
@@ -184,13 +160,13 @@ def test_sequence_gives_odometry_near_ground_truth_and_skips_a_bad_cloud(seq_nod
     np.testing.assert_allclose(poses[-1][1], T, atol=1e-6)
 
     # ~/pose: the cloud against its keyframe, in the cloud's frame, one per cloud.
-    pose = _by_stamp(probe, "pose")
-    assert rh.wait_for(lambda: len(_by_stamp(probe, "pose")) == NUM_CLOUDS, 10.0)
+    pose = probe.by_stamp("pose")
+    assert rh.wait_for(lambda: len(probe.by_stamp("pose")) == NUM_CLOUDS, 10.0)
     last = pose[int(seq.stamps_ns[-1])]
     assert last.header.frame_id == FRAME_ID
     T_kf = pose_to_matrix(last.pose)
     assert np.linalg.norm(T_kf[:3, 3]) <= 0.5 + 1e-6       # sequential.keyframe_max_translation
-    assert len(_by_stamp(probe, "pose_with_covariance")) == NUM_CLOUDS
+    assert len(probe.by_stamp("pose_with_covariance")) == NUM_CLOUDS
 
     d = _fresh_diag(probe)
     assert d["mode"] == "sequential"
