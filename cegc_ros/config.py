@@ -40,6 +40,10 @@ class PreprocessConfig:
     num_points: int = field(default=1024, metadata=_meta(
         "Points per cloud fed to the network (seeded subsample of the support points).",
         64, 8192))
+    sampling: str = field(default="grid", metadata=_meta(
+        "How the support and network points are drawn: 'grid' (spatially even: one point per "
+        "cell of the coarsest grid with enough occupied cells) or 'random' (uniform draw, which "
+        "follows the sensor's density). See cegc_ros/geometry.py.", choices=("grid", "random")))
     seed: int = field(default=0, metadata=_meta(
         "Seed of the deterministic subsamples.", 0, 2**31 - 1))
 

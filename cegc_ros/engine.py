@@ -225,7 +225,8 @@ class Registrar:
             src, tgt = bounded.source, bounded.target
         with clock("features"):
             ps, pt, norm = prepare_pair(src, tgt, pre.num_points, pre.support_points,
-                                        np.random.default_rng(pre.seed), self.model.cfg.features())
+                                        np.random.default_rng(pre.seed), self.model.cfg.features(),
+                                        pre.sampling)
             src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres
             tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
             inlier = eng.inlier_factor * refine.median_spacing(tgt_m)

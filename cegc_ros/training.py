@@ -201,7 +201,8 @@ class PairSampler:
         """The engine's bound + features stages (cegc_ros/engine.py), then tensors with a batch axis."""
         pre = self.preprocess
         bounded = bound_pair(source, target, pre, Registrar.MIN_POINTS)
-        ps, pt, norm = prepare_pair(bounded.source, bounded.target, points, pre.support_points, rng, self.features)
+        ps, pt, norm = prepare_pair(bounded.source, bounded.target, points, pre.support_points, rng, self.features,
+                                    pre.sampling)
         R, t_n = norm.to_normalised(T)
         extra = fpfh_neighbours(ps.desc, pt.desc, self.fpfh_k)
 

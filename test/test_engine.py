@@ -11,7 +11,7 @@ import torch
 
 from cegc_ros.config import EngineConfig, PreprocessConfig
 from cegc_ros.engine import CheckpointError, default_weights, Registrar, load_checkpoint, save_checkpoint
-from cegc_ros.geometry import normalise_pair
+from cegc_ros.geometry import normalise_pair, subsample
 from cegc_ros.metrics import rotation_error_deg, translation_error
 from cegc_ros.model import CEGC, ModelConfig
 from cegc_ros.refine import covariance
@@ -143,6 +143,29 @@ def test_normalisation_round_trip():
     R, t_n = norm.to_normalised(T)
     assert np.allclose(src_n @ R.T + t_n, tgt_n, atol=1e-4)
     assert np.allclose(norm.to_metres(R, t_n), T)
+
+
+def test_grid_sampling_spreads_points_evenly_where_random_follows_the_density():
+    """A Kinect-like density: 90% of the points in the near tenth of a 10 m x 1 m strip. The
+    grid draw gives the far 90% of the strip most of its points; a random draw ~10%."""
+    rng = np.random.default_rng(0)
+    near = rng.uniform([0.0, 0.0, 0.0], [1.0, 1.0, 0.01], (18000, 3))
+    far = rng.uniform([1.0, 0.0, 0.0], [10.0, 1.0, 0.01], (2000, 3))
+    pts = np.concatenate([near, far])
+    far_share = {}
+    for sampling in ("grid", "random"):
+        idx = subsample(pts, 1000, np.random.default_rng(1), sampling)
+        assert len(idx) == 1000 and len(np.unique(idx)) == 1000 and (np.diff(idx) > 0).all()
+        assert np.array_equal(idx, subsample(pts, 1000, np.random.default_rng(1), sampling))   # seeded
+        far_share[sampling] = float((pts[idx, 0] > 1.0).mean())
+    assert far_share["grid"] > 0.75 and far_share["random"] < 0.15
+    # fewer points than asked: all of them, padded by repetition; unknown names are refused
+    few = subsample(pts[:10], 16, rng, "grid")
+    assert len(few) == 16 and set(few.tolist()) == set(range(10))
+    dup = subsample(np.zeros((50, 3)), 20, rng, "grid")                  # one cell only: random draw
+    assert len(np.unique(dup)) == 20
+    with pytest.raises(ValueError, match="sampling must be one of"):
+        subsample(pts, 100, rng, "fps")
 
 
 def test_covariance_shrinks_with_more_consistent_correspondences():
