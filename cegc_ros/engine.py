@@ -234,7 +234,8 @@ class Registrar:
             m = matching.match(self._network(len(ps.points), len(pt.points), eng), ps, pt, eng, self.device)
         with clock("estimate"):
             c = m.correspondences
-            est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, self.compat)
+            est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, self.compat,
+                                     (src_m, tgt_m))
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t
             valid, reason = est.valid, est.reason

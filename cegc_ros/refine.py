@@ -32,10 +32,18 @@ def icp(source: np.ndarray, target: np.ndarray, T: np.ndarray, max_distance: flo
 
 
 def fitness(source: np.ndarray, target: np.ndarray, T: np.ndarray, distance: float) -> float:
-    """Fraction of source points within distance of the target after applying T."""
+    """Fraction of source points within distance of the target after applying T (4, 4)."""
+    return float(fitnesses(T[None, :3, :3], T[None, :3, 3], source, target, distance)[0])
+
+
+def fitnesses(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray, distance: float
+              ) -> np.ndarray:
+    """:func:`fitness` of H poses at once: R (H, 3, 3), t (H, 3), source (Ns, 3), target (Nt, 3) -> (H,)."""
     from scipy.spatial import cKDTree
-    d, _ = cKDTree(target).query(source @ T[:3, :3].T + T[:3, 3], k=1)
-    return float((d <= distance).mean())
+    moved = np.asarray(source, np.float64)[None] @ np.transpose(R, (0, 2, 1)) + np.asarray(t)[:, None]
+    d, _ = cKDTree(np.asarray(target, np.float64)).query(moved.reshape(-1, 3), k=1,
+                                                          distance_upper_bound=2.0 * distance)
+    return (d.reshape(len(R), -1) <= distance).mean(1)
 
 
 def median_spacing(points: np.ndarray) -> float:

@@ -79,3 +79,30 @@ def test_compatibility_is_deterministic():
     b = estimate_compatibility(src, tgt, np.ones(800), 0.05)
     np.testing.assert_array_equal(a.R, b.R)
     np.testing.assert_array_equal(a.inliers, b.inliers)
+
+
+def test_geometric_verification_prefers_the_pose_that_lays_the_cloud_on_the_target():
+    """Two consistent clusters of 40 correspondences, one under the true pose (confidence 0.8),
+    one under a wrong pose (confidence 1), among 300 random ones: the count alone picks the wrong
+    pose; with the clouds given, count x fitness picks the truth, because the wrong pose lays
+    the source cloud in free space."""
+    rng = np.random.default_rng(8)
+    cloud = rng.uniform(-2, 2, (1500, 3))
+    R = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+    t = np.array([0.3, 0.2, -0.4])
+    target = cloud @ R.T + t
+    R2 = Rotation.from_euler("xyz", [-40, 60, 5], degrees=True).as_matrix()
+    t2 = np.array([1.0, -1.5, 0.5])
+    true_idx = rng.choice(1500, 40, replace=False)
+    wrong_idx = rng.choice(1500, 40, replace=False)
+    noise_idx = rng.choice(1500, 300)
+    src = np.concatenate([cloud[true_idx], cloud[wrong_idx], cloud[noise_idx]])
+    tgt = np.concatenate([target[true_idx], cloud[wrong_idx] @ R2.T + t2, rng.uniform(-2, 2, (300, 3))])
+    w = np.concatenate([np.full(40, 0.8), np.ones(40), np.full(300, 0.5)])
+    alone = estimate_compatibility(src, tgt, w, 0.05)
+    verified = estimate_compatibility(src, tgt, w, 0.05, clouds=(cloud, target))
+    assert rotation_error_deg(R2, alone.R) < 1.0                 # the count alone: the wrong pose
+    assert rotation_error_deg(R, verified.R) < 0.5 and np.linalg.norm(verified.t - t) < 0.02
+    assert verified.inliers[:40].all() and not verified.inliers[40:80].any()
+    off = estimate_compatibility(src, tgt, w, 0.05, CompatibilityConfig(verify=0), clouds=(cloud, target))
+    np.testing.assert_array_equal(off.R, alone.R)                 # verify = 0 switches it off
