@@ -79,6 +79,10 @@ class EngineConfig:
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
         "confidence-weighted SVD over all of them). See cegc_ros/estimator.py.",
         choices=("compatibility", "svd")))
+    verify_hypotheses: int = field(default=50, metadata=_meta(
+        "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
+        "geometric fitness (share of the network's source points that land near a target "
+        "point); 0 ranks by the count alone, as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
     inlier_factor: float = field(default=2.0, metadata=_meta(
         "Inlier and compatibility distance of the estimator, in multiples of the target "
         "network points' median spacing.", 0.25, 20.0))

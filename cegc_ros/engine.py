@@ -22,6 +22,7 @@ reuses these stages; the engine never imports it.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import pickle
 import threading
@@ -234,7 +235,8 @@ class Registrar:
             m = matching.match(self._network(len(ps.points), len(pt.points), eng), ps, pt, eng, self.device)
         with clock("estimate"):
             c = m.correspondences
-            est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, self.compat,
+            compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses)
+            est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
                                      (src_m, tgt_m))
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t

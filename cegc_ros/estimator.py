@@ -20,13 +20,13 @@ the paper:
    and solves again (the paper's two-stage sampling).
 5. Selection: every hypothesis is scored on all correspondences by
    ``sum_i w_i * max(0, 1 - r_i / inlier_distance)`` (a truncated, confidence-weighted count).
-   When the caller passes the two point sets the correspondences come from (``clouds``; the
-   engine does, the ``sc2pcr`` peer does not), the ``verify`` best distinct hypotheses are re-ranked by
-   that count times their geometric fitness: the share of source points that land within
-   ``inlier_distance`` of a target point. In a room, a wrong pose that lays floor on floor and
-   one wall on another explains many correspondences but leaves much of the cloud in free
-   space; the true pose leaves less. Not in SC2-PCR; chosen on synthetic validation pairs
-   (docs/pipeline.md).
+   With ``verify`` > 0 and the two point sets the correspondences come from (``clouds``; the
+   engine passes them, with ``verify`` = ``engine.verify_hypotheses``; the ``sc2pcr`` peer does
+   not), the ``verify`` best distinct hypotheses are re-ranked by that count times their
+   geometric fitness: the share of source points that land within ``inlier_distance`` of a
+   target point. In a room, a wrong pose that lays floor on floor and one wall on another
+   explains many correspondences but leaves much of the cloud in free space; the true pose
+   leaves less. Not in SC2-PCR; chosen on synthetic validation pairs (docs/pipeline.md).
 6. Refinement: the best hypothesis is re-solved ``refine_iterations`` times by weighted SVD over
    its inliers, weights ``w_i / (1 + (r_i / inlier_distance)^2)`` (the paper's post-refinement,
    with the learned confidence as prior).
@@ -68,7 +68,7 @@ class CompatibilityConfig:
     k1: int = 30
     k2: int = 20
     refine_iterations: int = 10
-    verify: int = 50                  # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
+    verify: int = 0                   # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
 
 
 @dataclass

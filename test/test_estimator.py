@@ -100,9 +100,9 @@ def test_geometric_verification_prefers_the_pose_that_lays_the_cloud_on_the_targ
     tgt = np.concatenate([target[true_idx], cloud[wrong_idx] @ R2.T + t2, rng.uniform(-2, 2, (300, 3))])
     w = np.concatenate([np.full(40, 0.8), np.ones(40), np.full(300, 0.5)])
     alone = estimate_compatibility(src, tgt, w, 0.05)
-    verified = estimate_compatibility(src, tgt, w, 0.05, clouds=(cloud, target))
+    verified = estimate_compatibility(src, tgt, w, 0.05, CompatibilityConfig(verify=50), clouds=(cloud, target))
     assert rotation_error_deg(R2, alone.R) < 1.0                 # the count alone: the wrong pose
     assert rotation_error_deg(R, verified.R) < 0.5 and np.linalg.norm(verified.t - t) < 0.02
     assert verified.inliers[:40].all() and not verified.inliers[40:80].any()
-    off = estimate_compatibility(src, tgt, w, 0.05, CompatibilityConfig(verify=0), clouds=(cloud, target))
-    np.testing.assert_array_equal(off.R, alone.R)                 # verify = 0 switches it off
+    off = estimate_compatibility(src, tgt, w, 0.05, clouds=(cloud, target))
+    np.testing.assert_array_equal(off.R, alone.R)                 # verify = 0 (the default) switches it off

@@ -31,6 +31,11 @@ def test_recall_line_per_checkpoint_and_one_line_errors(cache, capsys):
     assert "nope.pt" in capsys.readouterr().err
     assert select_weights.main([str(cache), str(default_weights()), "--set", "engine.bogus=1"]) == 1
     assert "--set 'engine.bogus=1'" in capsys.readouterr().err
+    assert select_weights.main([str(cache), str(default_weights()), "--peers", "sc2pcr+icp"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2 and lines[1].startswith("sc2pcr+icp: recall ") and f"on {n_views} pairs" in lines[1]
+    assert select_weights.main([str(cache), str(default_weights()), "--peers", "magic"]) == 1
+    assert "unknown method 'magic'" in capsys.readouterr().err
 
 
 def test_evaluate_counts_successes_by_overlap():
@@ -45,6 +50,6 @@ def test_evaluate_counts_successes_by_overlap():
     pairs = [SimpleNamespace(source=None, target=None, T_target_source=np.eye(4), info={"overlap": 0.2}),
              SimpleNamespace(source=None, target=None, T_target_source=T_off, info={"overlap": 0.5}),
              SimpleNamespace(source=None, target=None, T_target_source=np.eye(4), info={"overlap": 0.6})]
-    r = select_weights.evaluate(Exact(), pairs)
+    r = select_weights.evaluate(Exact().register, pairs)
     assert r["recall"] == pytest.approx(2 / 3) and r["recall_low"] == 1.0 and r["recall_high"] == 0.5
     assert r["n_low"] == 1 and r["median_s"] == 0.5

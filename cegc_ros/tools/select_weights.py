@@ -8,7 +8,8 @@ different-view pairs of a validation pair cache (``cegc-make-pairs --split val``
 trained on, never real data). Prints one line per checkpoint: recall at 15 deg / 0.3 m, on the
 pairs under and over 30% overlap, median seconds per pair. This is how the shipped weights are
 chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preprocess setting
-(``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings.
+(``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings;
+``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 """
 
 from __future__ import annotations
@@ -20,12 +21,14 @@ from pathlib import Path
 import numpy as np
 
 
-def evaluate(registrar, pairs) -> dict[str, float]:
-    """Recall overall / under 30% overlap / from 30% on, and the median seconds per pair."""
+def evaluate(register, pairs) -> dict[str, float]:
+    """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
+    (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
+    and the median seconds per pair."""
     from cegc_ros.metrics import rotation_error_deg
     ok, low, secs = [], [], []
     for p in pairs:
-        res = registrar.register(p.source, p.target)
+        res = register(p.source, p.target)
         T, E = p.T_target_source, res.T_target_source
         ok.append(res.valid and rotation_error_deg(T[:3, :3], E[:3, :3]) < 15.0
                   and np.linalg.norm(T[:3, 3] - E[:3, 3]) < 0.3)
@@ -58,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("checkpoints", nargs="+", help="checkpoints to compare")
     ap.add_argument("--pairs", type=int, default=40)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--peers", default="", help="comma-separated classical peers to score on the same pairs")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
@@ -68,9 +72,17 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{args.cache}: no Kinect different-view pairs")
         idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
         pairs = [cache[int(i)] for i in idx]
-        for ck in args.checkpoints:
-            r = evaluate(Registrar.from_checkpoint(ck, device="cpu", preprocess=pre, engine=eng), pairs)
-            print(f"{ck}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
+        from cegc_ros import baselines
+        peers = [m for m in args.peers.split(",") if m]
+        for m in peers:
+            if m not in baselines.METHODS:
+                raise ValueError(f"--peers: unknown method {m!r}, expected some of {', '.join(baselines.METHODS)}")
+        runs = [(ck, Registrar.from_checkpoint(ck, device="cpu", preprocess=pre, engine=eng).register)
+                for ck in args.checkpoints]
+        runs += [(m, lambda s, t, m=m: baselines.register(m, s, t)) for m in peers]
+        for name, register in runs:
+            r = evaluate(register, pairs)
+            print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
                   f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s", flush=True)
     except (OSError, ValueError, PairCacheError, CheckpointError) as err:
         print(f"select_weights: {err}".splitlines()[0], file=sys.stderr)
