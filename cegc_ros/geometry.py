@@ -130,10 +130,10 @@ def subsample(points: np.ndarray, n: int, rng: np.random.Generator, sampling: st
     return np.sort(pick)
 
 
-def _grid_cells(points: np.ndarray, n: int, iterations: int = 24) -> np.ndarray | None:
+def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray | None:
     """(N, 3) -> (N,) int64 cell ids of the coarsest cubic grid found (bisection on the cell
     size) with at least n and, when reachable, under 1.15 n occupied cells; None when even the
-    finest tried grid has fewer than n."""
+    finest tried grid has fewer than n. At most 2^20 cells a side, so the ids fit in int64."""
     lo = points.min(0)
     span = points.max(0) - lo
     hi_size, lo_size = float(span.max()), 0.0
