@@ -31,8 +31,9 @@ def time_from_ns(stamp_ns: int) -> Time:
     return Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
 
 
-def time_to_ns(stamp: Time) -> int:
-    """Nanoseconds of a builtin_interfaces/Time."""
+def time_to_ns(stamp: Time | Any) -> int:
+    """Nanoseconds of a builtin_interfaces/Time (or anything with ``sec`` and ``nanosec``, such
+    as the ``CdrStamp`` of a raw subscription's parsed PointCloud2)."""
     return int(stamp.sec) * 10**9 + int(stamp.nanosec)
 
 

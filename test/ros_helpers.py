@@ -42,17 +42,19 @@ def ros_env(**extra: str) -> dict[str, str]:
 
 def cloud(xyz: np.ndarray, frame: str, stamp_ns: int) -> Any:
     """A PointCloud2 of float32 x, y, z."""
-    from builtin_interfaces.msg import Time
     from std_msgs.msg import Header
 
+    from msg_adapters.nav import time_from_ns
     from msg_adapters.point_cloud2 import xyz_to_cloud
 
-    header = Header(stamp=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=frame)
+    header = Header(stamp=time_from_ns(stamp_ns), frame_id=frame)
     return xyz_to_cloud(np.asarray(xyz, np.float32), header)
 
 
 def stamp_of(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+    """The header stamp of a message, in nanoseconds."""
+    from msg_adapters.nav import time_to_ns
+    return time_to_ns(msg.header.stamp)
 
 
 class OutputRecorder:

@@ -40,11 +40,11 @@ from cegc_ros.node.params import (
     usage,
 )
 from cegc_ros.node.stats import REJECT_REASONS, Rejected
-from cegc_ros.node.support import Mailbox, ThrottledLog, percentiles_ms, stamp_ns, thin
+from cegc_ros.node.support import Mailbox, ThrottledLog, percentiles_ms, thin
 
 __all__ = ["ENGINE_SECTIONS", "NODE_NAME", "REJECT_REASONS", "SECTIONS", "Mailbox",
            "ParamSpec", "ParameterError", "Rejected", "ThrottledLog", "check_value", "main",
-           "node_class", "param_specs", "params_yaml", "percentiles_ms", "stamp_ns", "thin",
+           "node_class", "param_specs", "params_yaml", "percentiles_ms", "thin",
            "usage"]
 
 

@@ -46,8 +46,9 @@ from cegc_ros.node.params import (
     param_specs,
 )
 from cegc_ros.node.stats import NodeStats, Rejected
-from cegc_ros.node.support import ThrottledLog, stamp_ns
+from cegc_ros.node.support import ThrottledLog
 from msg_adapters.markers import correspondence_markers
+from msg_adapters.nav import time_to_ns
 from msg_adapters.point_cloud2 import xyz_to_cloud
 from msg_adapters.point_cloud2_cdr import CdrError, parse_point_cloud2
 from msg_adapters.pose import pose_stamped, pose_with_covariance_stamped
@@ -243,7 +244,7 @@ class RegistrationNodeMixin:
         """One cloud (a PointCloud2 or a CdrPointCloud2): counted, paired, maybe a job."""
         now = time.monotonic()
         self.stats.add(f"messages_in.{side}")
-        offer = self.mode.offer(side, stamp_ns(msg.header.stamp), msg, now)
+        offer = self.mode.offer(side, time_to_ns(msg.header.stamp), msg, now)
         for unpaired_side, text in zip(offer.unpaired_sides, offer.unpaired):
             self.stats.add(f"unpaired.{unpaired_side}")
             self._log(f"unpaired.{unpaired_side}", text)

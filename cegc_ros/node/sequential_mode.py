@@ -35,9 +35,10 @@ from cegc_ros.config import SequentialConfig, SyncConfig
 from cegc_ros.node.engine_process import EngineDied, EngineError
 from cegc_ros.node.pairs_mode import Job, Offer
 from cegc_ros.node.stats import Rejected
-from cegc_ros.node.support import percentiles_ms, stamp_ns
+from cegc_ros.node.support import percentiles_ms
 from cegc_ros.node.worker import RegistrationWorker
 from cegc_ros.sequential import KeyframeOdometry
+from msg_adapters.nav import time_to_ns
 
 #: Why a cloud gave no odometry in this mode, beyond the pairs mode's reasons (rejected.*).
 SEQUENTIAL_REJECT_REASONS = (
@@ -201,7 +202,7 @@ class OdometryWorker(RegistrationWorker):
             odo.update(self._sequential)
         self._engine_failure = ""
         try:
-            frame = odo.feed(stamp_ns(job.source.header.stamp), xyz)
+            frame = odo.feed(time_to_ns(job.source.header.stamp), xyz)
         except ValueError as err:
             raise Rejected("unusable_cloud", f"cloud refused by the odometry: {err}") from err
         self.mode.frame_time(frame.timings.get("total", float("nan")))

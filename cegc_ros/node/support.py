@@ -88,8 +88,3 @@ def thin(xyz: np.ndarray, max_points: int) -> np.ndarray:
     if n <= max_points:
         return xyz
     return xyz[:: math.ceil(n / max_points)]
-
-
-def stamp_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
