@@ -57,19 +57,51 @@ def median_spacing(points: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
+#: Variance reported for a direction the data do not determine (m^2 or rad^2): large and finite,
+#: so that a consumer's fusion (robot_localization, a pose graph) ignores it instead of failing.
+UNCONSTRAINED_VARIANCE = 1e6
+#: An eigenvalue of J^T W J below this share of the largest counts as undetermined (float64
+#: rounding in the Hessian of a degenerate set is ~1e-16 of its scale; real constraints are far
+#: above 1e-9 of the strongest one).
+EIGEN_FLOOR = 1e-9
+
+
+def covariance_from_information(H: np.ndarray, sigma2: float) -> np.ndarray:
+    """(6, 6) symmetric positive semi-definite ``sigma2 * H^-1`` for a (6, 6) information matrix.
+
+    From the eigendecomposition of the symmetrised H, not an inverse: each eigen-direction gets
+    the variance ``sigma2 / lambda``, capped at :data:`UNCONSTRAINED_VARIANCE`; a direction whose
+    eigenvalue is below ``EIGEN_FLOOR`` x the largest (a plane, a line, a few points) or not
+    finite gets exactly that cap. Non-negative variances on every CPU, whatever its rounding
+    (an inverse of a near-singular H came out with variances of -7e13 on one).
+    """
+    H = np.asarray(H, np.float64)
+    if H.shape != (6, 6) or not np.isfinite(H).all() or not np.isfinite(sigma2):
+        return np.diag([UNCONSTRAINED_VARIANCE] * 6)
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))                       # ascending, V orthonormal
+    floor = EIGEN_FLOOR * max(float(lam[-1]), 1e-300)
+    var = np.full(6, UNCONSTRAINED_VARIANCE)
+    det = lam > floor
+    var[det] = np.minimum(max(float(sigma2), 1e-12) / lam[det], UNCONSTRAINED_VARIANCE)
+    cov = (V * var) @ V.T
+    return 0.5 * (cov + cov.T)
+
+
 def covariance(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, T: np.ndarray) -> np.ndarray:
     """6x6 covariance (x y z roll pitch yaw) of the weighted point-to-point least squares at T.
 
     Gauss-Newton: residual r_i = R p_i + t - q_i, Jacobian [I, -[R p_i]x]; covariance =
-    sigma^2 (J^T W J)^-1 with sigma^2 the weighted mean squared residual. Rows (translation,
-    rotation) are already ROS order. A diagonal of 1e6 when it is not determined.
+    sigma^2 (J^T W J)^-1 with sigma^2 the weighted mean squared residual, through
+    :func:`covariance_from_information` (always symmetric PSD; undetermined directions get
+    :data:`UNCONSTRAINED_VARIANCE`). Rows (translation, rotation) are already ROS order.
+    src, tgt: (K, 3) metres; w: (K,) weights; T: (4, 4).
     """
     R, t = T[:3, :3], T[:3, 3]
     rp = src @ R.T
     res = rp + t - tgt
-    w = np.clip(w.astype(np.float64), 0.0, None)
+    w = np.clip(np.nan_to_num(w.astype(np.float64)), 0.0, None)
     if w.sum() <= 1e-12 or len(src) < 3:
-        return np.diag([1e6] * 6)
+        return np.diag([UNCONSTRAINED_VARIANCE] * 6)
     J = np.zeros((len(src), 3, 6))
     J[:, :, :3] = np.eye(3)
     x, y, z = rp[:, 0], rp[:, 1], rp[:, 2]
@@ -80,11 +112,4 @@ def covariance(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, T: np.ndarray) -
     J[:, :, 3:] = -skew
     H = np.einsum("n,nij,nik->jk", w, J, J)
     sigma2 = float((w * (res ** 2).sum(1)).sum() / (3.0 * w.sum()))
-    try:
-        cov = np.linalg.inv(H) * max(sigma2, 1e-12)
-    except np.linalg.LinAlgError:
-        return np.diag([1e6] * 6)
-    cov = 0.5 * (cov + cov.T)
-    if not np.isfinite(cov).all():
-        return np.diag([1e6] * 6)
-    return cov
+    return covariance_from_information(H, sigma2)

@@ -16,13 +16,12 @@ from typing import Any
 
 import numpy as np
 
+from ..refine import UNCONSTRAINED_VARIANCE, covariance_from_information
 from .se3 import exp_so3
 
 #: Neighbourhood of the normal estimate, in voxels (radius) and points (at most).
 NORMAL_RADIUS_VOXELS = 3.0
 NORMAL_MAX_NN = 30
-#: Variance reported for a direction the matches do not constrain (m^2 or rad^2).
-UNCONSTRAINED_VARIANCE = 1e6
 
 
 
@@ -150,19 +149,11 @@ def point_to_plane_covariance(rotated: np.ndarray, normals: np.ndarray,
     With the residual ``r_i = n_i . (exp(phi) R p_i + t + dt - q_i)``, the Jacobian is
     ``[n_i, (R p_i) x n_i]`` (``rotated`` = R p_i, (M, 3)); covariance ``sigma^2 (J^T J)^-1``
     with ``sigma^2`` the residual variance. Unconstrained directions (fewer than 6 matches, a singular Hessian: a plane, a
-    corridor) get :data:`UNCONSTRAINED_VARIANCE`.
+    corridor) get :data:`~cegc_ros.refine.UNCONSTRAINED_VARIANCE` (cegc_ros.refine.covariance_from_information).
     """
     m = len(residuals)
     if m <= 6:
         return np.diag([UNCONSTRAINED_VARIANCE] * 6)
     J = np.concatenate([normals, np.cross(rotated, normals)], axis=1)   # (M, 6)
-    H = J.T @ J
     sigma2 = max(float((residuals ** 2).sum() / (m - 6)), 1e-12)
-    w, V = np.linalg.eigh(H)
-    floor = 1e-9 * max(float(w.max()), 1e-300)
-    inv_w = np.where(w > floor, 1.0 / np.maximum(w, floor), 0.0)
-    cov = sigma2 * (V * inv_w) @ V.T
-    # Directions the matches do not constrain: a large variance instead of an infinite one.
-    free = V[:, w <= floor]
-    cov += UNCONSTRAINED_VARIANCE * free @ free.T
-    return 0.5 * (cov + cov.T)
+    return covariance_from_information(J.T @ J, sigma2)
