@@ -112,3 +112,17 @@ class GilHogRegistrar(EchoRegistrar):
 
 def gil_hog(preprocess, engine) -> GilHogRegistrar:
     return GilHogRegistrar(preprocess, engine)
+
+
+class BadCovarianceRegistrar(EchoRegistrar):
+    """Echoes T_KNOWN with a symmetric covariance that has negative variances (what an inverse
+    of a near-singular information matrix once gave): the pose is sound, its uncertainty not."""
+
+    def register(self, src: np.ndarray, tgt: np.ndarray) -> Result:
+        res = super().register(src, tgt)
+        res.covariance = np.diag([-7.3e13, -8.8e13, 1e-4, 1e-4, 1e-4, 1e-4])
+        return res
+
+
+def bad_covariance(preprocess, engine) -> BadCovarianceRegistrar:
+    return BadCovarianceRegistrar(preprocess, engine)

@@ -204,3 +204,22 @@ def test_namespaced_nodes_have_their_own_status_and_replay_finds_its_node(stack,
     # The diagnostics the replay followed are robot1's: three pairs done there, none on robot2.
     assert res.diagnostics["pairs_done"] == "3"
     assert node1.stats.count("pairs_done") == 3 and node2.stats.count("pairs_done") == 0
+
+
+def test_a_pose_whose_only_defect_is_its_covariance_is_published_as_undetermined(stack):
+    from cegc_ros.refine import UNCONSTRAINED_VARIANCE
+    from fake_engines import T_KNOWN
+
+    node, probe = stack.node("fake_engines:bad_covariance", "/badcov")
+    t = 4000 * SEC
+    probe.send(rh.cloud(_pts(100), "a", t), rh.cloud(_pts(100), "b", t))
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose_with_covariance"), 60.0)
+    assert t in probe.by_stamp("pose")
+    msg = probe.by_stamp("pose_with_covariance")[t]
+    C = np.asarray(msg.pose.covariance).reshape(6, 6)
+    assert np.array_equal(C, np.diag([UNCONSTRAINED_VARIANCE] * 6))
+    p = msg.pose.pose.position
+    assert (p.x, p.y, p.z) == pytest.approx(tuple(T_KNOWN[:3, 3]))
+    values = node.diagnostics_values()
+    assert values["covariance_fallbacks"] == "1" and values["pairs_out"] == "1"
+    assert values["rejected.invalid_result"] == "0"

@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -47,6 +48,7 @@ from cegc_ros.node.params import (
 )
 from cegc_ros.node.stats import NodeStats, Rejected
 from cegc_ros.node.support import ThrottledLog
+from cegc_ros.refine import UNCONSTRAINED_VARIANCE
 from msg_adapters.markers import correspondence_markers
 from msg_adapters.nav import time_to_ns
 from msg_adapters.point_cloud2 import xyz_to_cloud
@@ -264,10 +266,19 @@ class RegistrationNodeMixin:
         tgt_header = Header(stamp=src.header.stamp, frame_id=tgt.header.frame_id)
         try:
             pose = pose_stamped(result.T_target_source, tgt_header)
+        except ValueError as err:
+            raise Rejected("invalid_result", f"engine result unusable: {err}") from err
+        try:
             pose_cov = pose_with_covariance_stamped(result.T_target_source, result.covariance,
                                                     tgt_header)
         except ValueError as err:
-            raise Rejected("invalid_result", f"engine result unusable: {err}") from err
+            # The pose is sound; only its uncertainty is not: publish it as undetermined
+            # (every direction UNCONSTRAINED_VARIANCE, which fusion ignores) and count it.
+            self.stats.add("covariance_fallbacks")
+            self._log("covariance_fallback", f"pose published with the undetermined covariance "
+                      f"(diagonal {UNCONSTRAINED_VARIANCE:g}): {err}")
+            pose_cov = pose_with_covariance_stamped(
+                result.T_target_source, np.diag([UNCONSTRAINED_VARIANCE] * 6), tgt_header)
         self.pub_pose.publish(pose)
         self.stats.pose_out(time.monotonic() - job.received)
         self.pub_pose_cov.publish(pose_cov)
