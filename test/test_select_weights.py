@@ -53,3 +53,16 @@ def test_evaluate_counts_successes_by_overlap():
     r = select_weights.evaluate(Exact().register, pairs)
     assert r["recall"] == pytest.approx(2 / 3) and r["recall_low"] == 1.0 and r["recall_high"] == 0.5
     assert r["n_low"] == 1 and r["median_s"] == 0.5
+
+
+def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):
+    import csv
+
+    from cegc_ros.engine import default_weights
+    out = tmp_path / "rows.csv"
+    assert select_weights.main([str(cache), str(default_weights()), "--dump", str(out)]) == 0
+    recall = float(capsys.readouterr().out.split("recall ")[1].split()[0])
+    rows = list(csv.DictReader(open(out)))
+    assert len(rows) == 2 and {r["run"] for r in rows} == {str(default_weights())}
+    assert all(0.0 <= float(r["fitness"]) <= 1.0 and float(r["total_s"]) > 0 for r in rows)
+    assert recall == sum(r["correct"] == "True" and r["valid"] == "True" for r in rows) / 2

@@ -21,19 +21,25 @@ from pathlib import Path
 import numpy as np
 
 
-def evaluate(register, pairs) -> dict[str, float]:
+def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float]:
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
-    and the median seconds per pair."""
+    and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
+    valid, fitness, each stage's seconds) for ``--dump``."""
     from cegc_ros.metrics import rotation_error_deg
     ok, low, secs = [], [], []
     for p in pairs:
         res = register(p.source, p.target)
         T, E = p.T_target_source, res.T_target_source
-        ok.append(res.valid and rotation_error_deg(T[:3, :3], E[:3, :3]) < 15.0
-                  and np.linalg.norm(T[:3, 3] - E[:3, 3]) < 0.3)
+        correct = bool(rotation_error_deg(T[:3, :3], E[:3, :3]) < 15.0
+                       and np.linalg.norm(T[:3, 3] - E[:3, 3]) < 0.3)
+        ok.append(res.valid and correct)
         low.append(p.info["overlap"] < 0.3)
         secs.append(res.timings["total"])
+        if rows is not None:
+            rows.append({"overlap": float(p.info["overlap"]), "correct": correct,
+                         "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
+                         **{f"{k}_s": float(v) for k, v in res.timings.items()}})
     ok, low = np.array(ok, bool), np.array(low, bool)
 
     def share(mask: np.ndarray) -> float:
@@ -62,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=40)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--peers", default="", help="comma-separated classical peers to score on the same pairs")
+    ap.add_argument("--dump", type=Path, default=None,
+                    help="write one CSV row per run and pair (overlap, correct, valid, fitness, stage seconds)")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
@@ -80,14 +88,30 @@ def main(argv: list[str] | None = None) -> int:
         runs = [(ck, Registrar.from_checkpoint(ck, device="cpu", preprocess=pre, engine=eng).register)
                 for ck in args.checkpoints]
         runs += [(m, lambda s, t, m=m: baselines.register(m, s, t)) for m in peers]
+        rows: list[dict] = []
         for name, register in runs:
-            r = evaluate(register, pairs)
+            start = len(rows)
+            r = evaluate(register, pairs, rows)
+            for row in rows[start:]:
+                row["run"] = name
             print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
                   f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s", flush=True)
+        if args.dump is not None:
+            _write_csv(args.dump, rows)
     except (OSError, ValueError, PairCacheError, CheckpointError) as err:
         print(f"select_weights: {err}".splitlines()[0], file=sys.stderr)
         return 1
     return 0
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    import csv
+    keys = list(dict.fromkeys(k for row in rows for k in row))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 if __name__ == "__main__":
