@@ -9,7 +9,9 @@ when jemalloc is installed and not loaded yet, the process re-executes itself on
 
 Neither path sets thread counts: torch and Open3D keep their defaults unless the node's
 ``engine.threads`` parameter says otherwise. Both set :data:`THREAD_ENV` (OpenMP threads that
-sleep instead of spinning) unless the user's environment sets those variables already.
+sleep instead of spinning) unless the user's environment sets those variables already, and so
+does ``import cegc_ros.engine`` (:func:`apply_thread_environment`), so that a user's own
+script gets the same threading as the console scripts.
 
 ``CEGC_NO_JEMALLOC=1`` turns jemalloc off. Standard library only.
 """
@@ -64,6 +66,24 @@ def allocator_environment(env: dict[str, str], jemalloc: str | None) -> dict[str
         env["LD_PRELOAD"] = ":".join([jemalloc, *preload])
         env.setdefault("MALLOC_CONF", MALLOC_CONF)
     return env
+
+
+#: Libraries that load OpenMP (libgomp reads THREAD_ENV once, when it is loaded).
+OPENMP_USERS = ("torch", "open3d")
+
+
+def apply_thread_environment() -> list[str]:
+    """Set the :data:`THREAD_ENV` variables this process's environment lacks (a user's own
+    value always wins). Returns those set too late to matter: a library of
+    :data:`OPENMP_USERS` was imported already and its OpenMP has read the environment."""
+    late = []
+    for key, value in THREAD_ENV.items():
+        if key in os.environ:
+            continue
+        os.environ[key] = value
+        if any(name in sys.modules for name in OPENMP_USERS):
+            late.append(key)
+    return late
 
 
 def jemalloc_loaded() -> bool:

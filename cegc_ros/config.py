@@ -86,6 +86,12 @@ class EngineConfig:
     inlier_factor: float = field(default=2.0, metadata=_meta(
         "Inlier and compatibility distance of the estimator, in multiples of the target "
         "network points' median spacing.", 0.25, 20.0))
+    min_valid_fitness: float = field(default=0.05, metadata=_meta(
+        "Verdict: a result whose fitness (share of the network's source points within the "
+        "inlier distance of a target point after the pose) is below this is invalid (reason "
+        "given): such a pose explains almost none of the source and is almost surely wrong. "
+        "0 switches the floor off. Chosen on synthetic validation pairs (docs/pipeline.md).",
+        0.0, 1.0))
     refine: str = field(default="icp", metadata=_meta(
         "Refinement after the estimator: 'none' or 'icp' (Open3D point-to-plane on the bounded "
         "clouds, at most icp_points each, started from the estimate).", choices=("none", "icp")))

@@ -27,6 +27,7 @@ import json
 import pickle
 import threading
 import time
+import warnings
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,9 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from . import bounding, estimator, matching, refine
-from .config import EngineConfig, PreprocessConfig
-from .geometry import LEGACY_FEATURES, prepare_pair
+from .allocator import apply_thread_environment
+
+# Before torch or Open3D load OpenMP: threads that sleep instead of spinning, as every console
+# script has them (cegc_ros/allocator.py; a user's own OMP_* settings win). Beside two busy
+# processes this is the difference between 3.4 and 2.0 s a pair (shared/notes/CPU_FACTS.md).
+_THREAD_ENV_TOO_LATE = apply_thread_environment()
+
+from . import bounding, estimator, matching, refine  # noqa: E402
+from .config import EngineConfig, PreprocessConfig  # noqa: E402
+from .geometry import LEGACY_FEATURES, prepare_pair  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
 
@@ -157,8 +165,16 @@ class Registrar:
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
                         preprocess: PreprocessConfig | None = None,
-                        engine: EngineConfig | None = None) -> Registrar:
-        """Load a checkpoint (None or "" = the weights shipped in the package) onto a device."""
+                        engine: EngineConfig | None = None, warm: bool = True) -> Registrar:
+        """Load a checkpoint (None or "" = the weights shipped in the package) onto a device.
+
+        ``warm``: register one tiny synthetic pair before returning (:meth:`warm_start`), so
+        that the first real pair does not pay for imports and first-touch set-up."""
+        if _THREAD_ENV_TOO_LATE:
+            warnings.warn(f"torch or open3d was imported before cegc_ros.engine, so "
+                          f"{', '.join(_THREAD_ENV_TOO_LATE)} could not take effect: beside busy "
+                          f"processes the engine runs slower; import cegc_ros.engine first or set "
+                          f"OMP_WAIT_POLICY=PASSIVE in the environment", RuntimeWarning, stacklevel=2)
         import torch
         engine = copy.deepcopy(engine) if engine else EngineConfig()
         if path in (None, ""):
@@ -169,7 +185,10 @@ class Registrar:
         model, meta = load_checkpoint(path, dev)
         engine.checkpoint = str(path)
         engine.device = dev
-        return cls(model, dev, str(path), meta, preprocess, engine)
+        registrar = cls(model, dev, str(path), meta, preprocess, engine)
+        if warm:
+            registrar.warm_start()
+        return registrar
 
     def update(self, preprocess: PreprocessConfig | None = None, engine: EngineConfig | None = None) -> None:
         """Change settings; they apply from the next register() call."""
@@ -180,6 +199,23 @@ class Registrar:
                 keep = (self.engine.checkpoint, self.engine.device, self.engine.compile)
                 self.engine = copy.deepcopy(engine)
                 self.engine.checkpoint, self.engine.device, self.engine.compile = keep
+
+    def warm_start(self) -> float:
+        """Register a tiny synthetic pair (two views of a box corner, 64 network points, eager):
+        Open3D and SciPy get imported, the BLAS / OpenMP thread pools and torch's kernels start.
+        A fresh Registrar's first real pair then costs about a warm one instead of ~3x
+        (docs/performance.md). Returns the seconds spent."""
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(0)
+        k = 400
+        corner = np.concatenate([np.c_[rng.uniform(0, 1, (k, 2)), np.zeros(k)],
+                                 np.c_[np.zeros(k), rng.uniform(0, 1, (k, 2))],
+                                 np.c_[rng.uniform(0, 1, k), np.zeros(k), rng.uniform(0, 1, k)]])
+        pre = dataclasses.replace(self.preprocess, num_points=64, support_points=128, voxel_size=0.0)
+        eng = dataclasses.replace(self.engine, compile=False)
+        with self._lock:
+            self._register(corner, corner[::-1] + 0.01, pre, eng)
+        return time.perf_counter() - t0
 
     def warm_up(self) -> float:
         """With ``engine.compile``, compile the network now (seconds spent; 0 without it), so
@@ -253,6 +289,10 @@ class Registrar:
             fit = refine.fitness(src_m, tgt_m, T, inlier)
             inl = est.inliers
             cov = refine.covariance(src_m[c[inl, 0]], tgt_m[c[inl, 1]], m.weights[inl], T)
+            if valid and fit < eng.min_valid_fitness:
+                valid, reason = False, (f"fitness {fit:.3f} < engine.min_valid_fitness "
+                                        f"{eng.min_valid_fitness:g}: the pose explains almost "
+                                        f"none of the source")
         timings["total"] = sum(timings.values())
         return RegistrationResult(
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),

@@ -5,9 +5,8 @@ node started by ROS gets the same allocator as one started by the bootstrap."""
 from __future__ import annotations
 
 import importlib
-import os
 
-from cegc_ros.allocator import THREAD_ENV, reexec_with_allocator
+from cegc_ros.allocator import apply_thread_environment, reexec_with_allocator
 
 #: console script -> module whose ``main()`` it runs (setup.py builds its entry points from this).
 SCRIPTS = {
@@ -25,8 +24,7 @@ SCRIPTS = {
 
 
 def _run(script: str) -> int:
-    for key, value in THREAD_ENV.items():     # before torch loads OpenMP (also without jemalloc)
-        os.environ.setdefault(key, value)
+    apply_thread_environment()                # before torch loads OpenMP (also without jemalloc)
     reexec_with_allocator()
     return importlib.import_module(SCRIPTS[script]).main()
 
