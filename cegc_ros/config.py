@@ -105,6 +105,13 @@ class EngineConfig:
         100, 1_000_000))
     threads: int = field(default=0, metadata=_meta(
         "Torch intra-op threads; 0 keeps the library's default.", 0, 256, dynamic=False))
+    runtime: str = field(default="auto", metadata=_meta(
+        "What runs the network on a CPU: 'onnxruntime' (the checkpoint's ONNX export beside it, "
+        "e.g. cegc_views.onnx; an error at start-up when it is missing or stale), 'torch', or "
+        "'auto' (ONNX Runtime when the export matches the checkpoint, else torch). ONNX Runtime "
+        "serves engine.candidates 'both' at the exported learned_candidates; other settings, "
+        "CUDA and engine.compile run torch. See cegc_ros/onnx_network.py.", dynamic=False,
+        choices=("auto", "torch", "onnxruntime")))
     compile: bool = field(default=False, metadata=_meta(
         "torch.compile the network at start-up for clouds of exactly preprocess.num_points "
         "points (the usual case); other sizes run eagerly. Costs about 40 s at start-up on a "

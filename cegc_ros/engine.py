@@ -45,6 +45,7 @@ _THREAD_ENV_TOO_LATE = apply_thread_environment()
 from . import bounding, estimator, matching, refine  # noqa: E402
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
 from .geometry import LEGACY_FEATURES, prepare_pair  # noqa: E402
+from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
 
@@ -78,6 +79,7 @@ class RegistrationResult:
     valid: bool
     reason: str = ""                     # why not valid; "" when valid
     refined: str = "none"                # "none" | "icp"
+    runtime: str = "torch"               # what ran the network: "torch" | "onnxruntime" | "torch.compile"
     voxel_size: float = 0.0              # metres of the grid that bounded the input (0: none)
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
 
@@ -161,6 +163,8 @@ class Registrar:
         self._compile_points = self.preprocess.num_points
         self._compile_key: tuple[int, str] = (0, "")
         self.compiled_runs = 0                # forward passes that used the compiled graph
+        self._onnx: OnnxNetwork | None = None  # engine.runtime: the ONNX export, when it is used
+        self.runtime_note = ""                # why ONNX Runtime is not used ("" when it is)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
@@ -186,6 +190,16 @@ class Registrar:
         engine.checkpoint = str(path)
         engine.device = dev
         registrar = cls(model, dev, str(path), meta, preprocess, engine)
+        if engine.runtime not in RUNTIMES:
+            raise ValueError(f"engine.runtime must be one of {RUNTIMES}, got {engine.runtime!r}")
+        if engine.runtime != "torch":
+            if dev != "cpu":
+                registrar.runtime_note = f"ONNX Runtime runs on the CPU only; {dev} runs torch"
+            else:
+                registrar._onnx, registrar.runtime_note = OnnxNetwork.for_checkpoint(
+                    path, model.cfg, engine.threads)
+            if engine.runtime == "onnxruntime" and registrar._onnx is None:
+                raise CheckpointError(f"engine.runtime onnxruntime: {registrar.runtime_note}")
         if warm:
             registrar.warm_start()
         return registrar
@@ -196,9 +210,10 @@ class Registrar:
             if preprocess is not None:
                 self.preprocess = copy.deepcopy(preprocess)
             if engine is not None:
-                keep = (self.engine.checkpoint, self.engine.device, self.engine.compile)
+                keep = (self.engine.checkpoint, self.engine.device, self.engine.compile, self.engine.runtime)
                 self.engine = copy.deepcopy(engine)
-                self.engine.checkpoint, self.engine.device, self.engine.compile = keep
+                (self.engine.checkpoint, self.engine.device, self.engine.compile,
+                 self.engine.runtime) = keep
 
     def warm_start(self) -> float:
         """Register a tiny synthetic pair (two views of a box corner, 64 network points, eager):
@@ -235,17 +250,23 @@ class Registrar:
                 raise RuntimeError(f"engine.compile failed, the network runs eagerly: {err}") from err
         return time.perf_counter() - t0
 
-    def _network(self, n_source: int, n_target: int, eng: EngineConfig) -> Any:
-        """The model, or under engine.compile a compiled one for start-up-sized clouds."""
+    def _network(self, n_source: int, n_target: int, eng: EngineConfig) -> tuple[Any, str]:
+        """(what runs the network, its name): under engine.compile a compiled graph for
+        start-up-sized clouds; else the ONNX export where it serves these settings; else the
+        torch model."""
         if not eng.compile or eng.candidates == "all" or not n_source == n_target == self._compile_points:
-            return self.model
+            onnx = self._onnx
+            if (onnx is not None and eng.runtime != "torch" and eng.candidates == "both"
+                    and eng.learned_candidates == onnx.learned_candidates):
+                return onnx, "onnxruntime"
+            return self.model, "torch"
         key = (eng.learned_candidates + eng.fpfh_candidates, eng.candidates)
         if self._compiled is None or key != self._compile_key:
             import torch
             self._compiled = _Compiled(self.model, torch.compile(self.model.score_candidates, dynamic=False))
             self._compile_key = key
         self.compiled_runs += 1
-        return self._compiled
+        return self._compiled, "torch.compile"
 
     def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
         """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
@@ -268,7 +289,8 @@ class Registrar:
             tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
             inlier = eng.inlier_factor * refine.median_spacing(tgt_m)
         with clock("match"):
-            m = matching.match(self._network(len(ps.points), len(pt.points), eng), ps, pt, eng, self.device)
+            network, runtime = self._network(len(ps.points), len(pt.points), eng)
+            m = matching.match(network, ps, pt, eng, self.device)
         with clock("estimate"):
             c = m.correspondences
             compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses)
@@ -298,7 +320,7 @@ class Registrar:
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
-            reason=reason, refined=refined, voxel_size=bounded.voxel, timings=timings)
+            reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, timings=timings)
 
 
 class _StageClock:

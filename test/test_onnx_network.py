@@ -1,0 +1,101 @@
+"""The network under ONNX Runtime (engine.runtime): the shipped export matches the shipped
+weights, gives torch's outputs within a stated tolerance, and is used only where it serves."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from cegc_ros.config import EngineConfig, PreprocessConfig
+from cegc_ros.engine import CheckpointError, Registrar, default_weights, save_checkpoint
+from cegc_ros.model import CEGC, ModelConfig
+from cegc_ros.onnx_network import OnnxNetwork, export_onnx, onnx_path_for
+from cegc_ros.tools.export_onnx import main as export_main
+from cegc_ros.tools.export_onnx import parity
+
+pytest.importorskip("onnxruntime")
+
+#: Stated tolerance of the parity: float32 kernels fused differently (logits are O(1-10)).
+LOGIT_TOL = 1e-3
+
+
+def _corner(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    k = n // 3
+    return np.concatenate([np.c_[rng.uniform(0, 3, (k, 2)), np.zeros(k)],
+                           np.c_[np.zeros(k), rng.uniform(0, 3, k), rng.uniform(0, 2.5, k)],
+                           np.c_[rng.uniform(0, 3, k), np.zeros(k), rng.uniform(0, 2.5, k)]])
+
+
+def test_the_shipped_export_is_of_the_shipped_weights():
+    ckpt = default_weights()
+    net, why = OnnxNetwork.for_checkpoint(ckpt, CEGC(ModelConfig()).cfg)
+    assert why == "" and net is not None, why
+    assert net.learned_candidates == EngineConfig().learned_candidates
+
+
+@pytest.mark.parametrize("num_points", [1024, 256])
+def test_the_shipped_export_gives_torchs_outputs(num_points):
+    ckpt = default_weights()
+    p = parity(ckpt, onnx_path_for(ckpt), num_points=num_points)
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
+    assert p["candidates_equal"] >= 0.999          # a learned top-3 tie may order differently
+
+
+def test_the_engine_uses_it_by_default_with_the_same_confidences():
+    src = _corner(6000, 0)
+    tgt = _corner(6000, 1) @ np.array([[0.9, -0.43589, 0], [0.43589, 0.9, 0], [0, 0, 1.0]]).T
+    ort_ = Registrar.from_checkpoint(device="cpu", warm=False)
+    ref = Registrar.from_checkpoint(device="cpu", engine=EngineConfig(runtime="torch"), warm=False)
+    a, b = ort_.register(src, tgt), ref.register(src, tgt)
+    assert (a.runtime, b.runtime) == ("onnxruntime", "torch") and ort_.runtime_note == ""
+    np.testing.assert_allclose(a.source_overlap, b.source_overlap, atol=LOGIT_TOL)
+    np.testing.assert_allclose(np.sort(a.weights), np.sort(b.weights), atol=LOGIT_TOL)
+    # Settings the export does not serve run torch, without a word to the caller.
+    for eng in (EngineConfig(candidates="fpfh"), EngineConfig(learned_candidates=4)):
+        ort_.update(engine=eng)
+        assert ort_.register(src, tgt).runtime == "torch"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    torch.manual_seed(0)
+    cfg = ModelConfig(agnn_dims=(16, 16, 32), feat_dim=32, attn_heads=2, attn_layers=1, cams_dim=8, hoce_topk=4)
+    root = tmp_path_factory.mktemp("onnx")
+    a, b = root / "a.pt", root / "b.pt"
+    save_checkpoint(a, CEGC(cfg), {"note": "a"})
+    torch.manual_seed(1)
+    save_checkpoint(b, CEGC(cfg), {"note": "b"})
+    return a, b
+
+
+def test_export_of_any_checkpoint_and_a_stale_export_is_refused(tiny, capsys):
+    pytest.importorskip("onnx")
+    a, b = tiny
+    assert export_main([str(a)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"{onnx_path_for(a)}: overlap logits within ")
+    assert float(line.split("candidates equal ")[1].split()[0]) >= 0.99   # random weights: near-ties
+    p = parity(a, onnx_path_for(a), num_points=128)
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["candidates_equal"] >= 0.99
+    pre = PreprocessConfig(num_points=128)
+    assert Registrar.from_checkpoint(a, device="cpu", preprocess=pre)._onnx is not None
+    # a's export beside b: another checkpoint's, never used.
+    shutil.copy(onnx_path_for(a), onnx_path_for(b))
+    auto = Registrar.from_checkpoint(b, device="cpu", preprocess=pre, warm=False)
+    assert auto._onnx is None and "exported from another checkpoint" in auto.runtime_note
+    assert auto.register(_corner(3000, 2), _corner(3000, 3)).runtime == "torch"
+    with pytest.raises(CheckpointError, match="engine.runtime onnxruntime: b.onnx was exported from another"):
+        Registrar.from_checkpoint(b, device="cpu", preprocess=pre, engine=EngineConfig(runtime="onnxruntime"))
+    onnx_path_for(b).write_bytes(b"not an onnx file")
+    net, why = OnnxNetwork.for_checkpoint(b, None)
+    assert net is None and why.startswith("b.onnx does not load: ")
+
+
+def test_export_errors_are_one_line(tmp_path, capsys):
+    assert export_main([str(tmp_path / "missing.pt")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("export_onnx: checkpoint ") and "file not found" in err and "\n" not in err
