@@ -164,8 +164,15 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
 
     # 2. seeds: spectral score x confidence, non-maximum suppression in the source.
     score = _leading_eigenvector(soft) * w
-    near = ds < cfg.nms_factor * thr                                      # includes the diagonal
-    local_max = score >= (near * score.astype(np.float32)[None, :]).max(axis=1)   # scores are >= 0
+    # A seed beats every correspondence whose source point lies within the NMS radius: the
+    # neighbour pairs from a k-d tree (a few per point) instead of a pass over the K x K matrix.
+    from scipy.spatial import cKDTree
+    pairs = cKDTree(src).query_pairs(cfg.nms_factor * thr, output_type="ndarray")   # (P, 2), i < j
+    s32 = score.astype(np.float32)
+    row_max = s32.copy()                                                   # each point's own score
+    np.maximum.at(row_max, pairs[:, 0], s32[pairs[:, 1]])
+    np.maximum.at(row_max, pairs[:, 1], s32[pairs[:, 0]])
+    local_max = score >= row_max
     cand = np.flatnonzero(local_max & (score > 0))
     n_seeds = max(1, min(cfg.max_seeds, int(np.ceil(cfg.seed_ratio * K)), len(cand)))
     if len(cand) == 0:
