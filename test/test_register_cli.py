@@ -96,6 +96,14 @@ def test_bad_files_are_one_line_and_exit_1(pair, tmp_path, capsys):
     corrupt = tmp_path / "corrupt.npy"
     corrupt.write_bytes(b"\x93NUMPY garbage")
     assert "not a readable .npy array" in _error(capsys, [str(corrupt), str(target)])
+    named = tmp_path / "text_named.npy"          # numpy would suggest allow_pickle=True here
+    named.write_text("1 2 3\n4 5 6\n")
+    line = _error(capsys, [str(named), str(target)])
+    assert f"{named}: not a readable .npy array (not a .npy file)" in line and "pickle" not in line
+    nans = tmp_path / "nans.npy"
+    np.save(nans, np.full((50, 3), np.nan))
+    assert f"{nans}: no finite points (all 50 have a NaN or inf coordinate)" in \
+        _error(capsys, [str(source), str(nans)])
 
 
 @pytest.mark.parametrize("content, message", [
@@ -116,9 +124,34 @@ def test_bad_params_files_are_one_line_and_exit_1(pair, tmp_path, capsys, conten
 
 
 def test_usage_errors_exit_2():
-    with pytest.raises(SystemExit) as err:
-        cli.main(["only_one.npy"])
-    assert err.value.code == 2
+    for argv in (["only_one.npy"], ["a.npy", "b.npy", "--pairs", "list.txt"], []):
+        with pytest.raises(SystemExit) as err:
+            cli.main(argv)
+        assert err.value.code == 2
+
+
+def test_a_list_of_pairs_in_one_process_one_json_line_each_and_bad_lines_named(pair, tmp_path, capsys):
+    source, target, T_gt, source_xyz = pair
+    lst = tmp_path / "pairs.txt"
+    lst.write_text(f"# source target [out]\n{source} {target} moved.npy\n\n"
+                   f"{source} missing.ply   # a bad pair does not stop the others\n"
+                   f"{target} {target}\n")
+    assert cli.main(["--pairs", str(lst), "--json"]) == 1       # one pair failed
+    captured = capsys.readouterr()
+    docs = [json.loads(line) for line in captured.out.strip().splitlines()]
+    assert [d["line"] for d in docs] == [2, 5]
+    T = np.array(docs[0]["T_target_source"])
+    assert docs[0]["valid"] and rotation_error_deg(T_gt[:3, :3], T[:3, :3]) < 0.5
+    assert docs[0]["wall_s"] >= docs[0]["timings"]["total"] > 0
+    assert np.abs(np.array(docs[1]["T_target_source"]) - np.eye(4)).max() < 1e-3   # a cloud onto itself
+    moved = np.load(tmp_path / "moved.npy")                     # OUT relative to the list's folder
+    assert np.abs(moved - (source_xyz @ T_gt[:3, :3].T + T_gt[:3, 3])).max() < 0.01
+    err = captured.err.strip().splitlines()
+    assert err == [f"cegc-register: error: --pairs {lst}:4: {tmp_path / 'missing.ply'}: no such file"]
+    bad = tmp_path / "bad.txt"
+    bad.write_text(f"{source}\n")
+    assert f"--pairs {bad}:1: expected 'SOURCE TARGET [OUT]', got 1 fields" in \
+        _error(capsys, ["--pairs", str(bad)])
 
 
 def test_a_bad_file_from_the_command_line_prints_no_traceback(tmp_path):

@@ -1,6 +1,7 @@
 """cegc-register: register two point-cloud files with the node's engine, without ROS.
 
     cegc-register SOURCE TARGET [--params FILE] [--json] [--out FILE]
+    cegc-register --pairs LIST [--params FILE] [--json]
 
 SOURCE and TARGET: .npy ((N, 3) or wider: the first three columns are x, y, z) or any point
 cloud file Open3D reads (.ply, .pcd, .xyz, .xyzn, .xyzrgb, .pts); units are metres for the
@@ -11,8 +12,16 @@ reason, timings; timings in seconds). ``--params`` takes the node's parameter fi
 (``preprocess.*`` and ``engine.*`` are used); ``--out`` writes the source moved into the target
 frame (.npy, or a format Open3D writes: .ply, .pcd, .xyz, .pts).
 
-Exit status: 0 when a result was computed (valid or not: see ``valid``), 1 with one line on
-stderr when a file or parameter cannot be used or the engine fails, 2 for a usage error.
+``--pairs LIST`` registers many pairs in one process (one start-up, one warm engine): LIST is
+a text file with one pair per line, ``SOURCE TARGET [OUT]`` (whitespace-separated; relative
+paths are relative to LIST's folder; ``#`` starts a comment). Each pair prints as above, headed
+by its line, or with ``--json`` one JSON object per line (JSON Lines) that also has ``line``,
+``source``, ``target`` and ``wall_s`` (reading, registering and writing that pair). A pair that
+fails prints one line on stderr naming its line in LIST and the run goes on with the next.
+
+Exit status: 0 when a result was computed (valid or not: see ``valid``) for every pair, 1 with
+one line on stderr per problem when a file or parameter cannot be used or the engine fails, 2
+for a usage error.
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ import contextlib
 import json
 import os
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -41,8 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, description="Register SOURCE onto TARGET with CEGC (the engine of "
                                "register_node) and print T_target_source.")
-    p.add_argument("source", type=Path, help="cloud to move: .npy, .ply, .pcd, .xyz, ...")
-    p.add_argument("target", type=Path, help="cloud that stays: .npy, .ply, .pcd, .xyz, ...")
+    p.add_argument("source", type=Path, nargs="?", help="cloud to move: .npy, .ply, .pcd, .xyz, ...")
+    p.add_argument("target", type=Path, nargs="?", help="cloud that stays: .npy, .ply, .pcd, .xyz, ...")
+    p.add_argument("--pairs", type=Path, default=None, metavar="LIST",
+                   help="a text file of pairs, one 'SOURCE TARGET [OUT]' per line: all of them "
+                        "in one process")
     p.add_argument("--params", type=Path, default=None,
                    help="the node's parameter file (ros__parameters YAML); default: the "
                         "node's defaults")
@@ -78,7 +91,8 @@ def read_cloud(path: Path) -> np.ndarray:
         try:
             xyz = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as err:
-            raise InputError(f"{path}: not a readable .npy array ({err})".splitlines()[0]) from err
+            why = "not a .npy file" if "pickle" in str(err) else str(err)   # numpy's advice is wrong here
+            raise InputError(f"{path}: not a readable .npy array ({why})".splitlines()[0]) from err
         if xyz.ndim != 2 or xyz.shape[1] < 3 or not np.issubdtype(xyz.dtype, np.number):
             raise InputError(f"{path}: expected an (N, 3) numeric array, got shape "
                              f"{xyz.shape} of {xyz.dtype}")
@@ -92,7 +106,10 @@ def read_cloud(path: Path) -> np.ndarray:
         xyz = np.asarray(cloud.points)
     if len(xyz) == 0:
         raise InputError(f"{path}: no points (empty, or not a readable {suffix} file)")
-    return np.asarray(xyz, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if not np.isfinite(xyz).all(axis=1).any():
+        raise InputError(f"{path}: no finite points (all {len(xyz)} have a NaN or inf coordinate)")
+    return xyz
 
 
 def write_cloud(path: Path, xyz: np.ndarray) -> None:
@@ -179,30 +196,88 @@ def format_result(result: Any) -> str:
     return "\n".join(lines)
 
 
+def read_pair_list(path: Path) -> list[tuple[int, Path, Path, Path | None]]:
+    """(line number, source, target, out or None) of each pair in a ``--pairs`` LIST file."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"--pairs {path}: cannot read it ({err})".splitlines()[0]) from err
+    pairs = []
+    for number, line in enumerate(text.splitlines(), 1):
+        words = line.split("#", 1)[0].split()
+        if not words:
+            continue
+        if len(words) not in (2, 3):
+            raise InputError(f"--pairs {path}:{number}: expected 'SOURCE TARGET [OUT]', got "
+                             f"{len(words)} fields")
+        paths = [p if p.is_absolute() else path.parent / p for p in map(Path, words)]
+        pairs.append((number, paths[0], paths[1], paths[2] if len(paths) == 3 else None))
+    if not pairs:
+        raise InputError(f"--pairs {path}: no pairs in it")
+    return pairs
+
+
+def _error_line(err: Exception, where: str = "") -> str:
+    text = str(err).strip().splitlines()
+    name = "" if isinstance(err, InputError) else f"{type(err).__name__}: "
+    return f"{PROG}: error: {where}{name}{text[0] if text else type(err).__name__}"
+
+
+def _register_one(registrar: Any, source_path: Path, target_path: Path, out: Path | None) -> Any:
+    source, target = read_cloud(source_path), read_cloud(target_path)
+    result = registrar.register(source, target)
+    if out is not None:
+        T = np.asarray(result.T_target_source, float)
+        write_cloud(out, source @ T[:3, :3].T + T[:3, 3])
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)   # exits 2 on a usage error
+    parser = build_parser()
+    args = parser.parse_args(argv)   # exits 2 on a usage error
+    if args.pairs is not None and (args.source is not None or args.out is not None):
+        parser.error("--pairs LIST replaces SOURCE TARGET and --out (OUT is LIST's third column)")
+    if args.pairs is None and (args.source is None or args.target is None):
+        parser.error("SOURCE and TARGET are required (or --pairs LIST)")
     try:
         pre, eng = engine_settings(args.params)
-        source, target = read_cloud(args.source), read_cloud(args.target)
-        if args.out is not None and args.out.suffix.lower() not in WRITE_FORMATS:
-            raise InputError(f"--out {args.out}: unknown format; use one of "
-                             f"{' '.join(WRITE_FORMATS)}")
+        if args.pairs is not None:
+            jobs = read_pair_list(args.pairs)
+        else:
+            jobs = [(0, args.source, args.target, args.out)]
+        for _, _, _, out in jobs:
+            if out is not None and out.suffix.lower() not in WRITE_FORMATS:
+                raise InputError(f"--out {out}: unknown format; use one of {' '.join(WRITE_FORMATS)}")
+        if args.pairs is None:                 # a bad file fails before the engine loads
+            clouds = read_cloud(args.source), read_cloud(args.target)
+            del clouds
         from cegc_ros.engine import Registrar
 
         registrar = Registrar.from_checkpoint(eng.checkpoint or None, device=eng.device,
                                               preprocess=pre, engine=eng)
-        result = registrar.register(source, target)
-        if args.out is not None:
-            T = np.asarray(result.T_target_source, float)
-            write_cloud(args.out, source @ T[:3, :3].T + T[:3, 3])
     except Exception as err:  # noqa: BLE001 - CLI boundary: one line, exit 1
-        text = str(err).strip().splitlines()
-        name = "" if isinstance(err, InputError) else f"{type(err).__name__}: "
-        print(f"{PROG}: error: {name}{text[0] if text else type(err).__name__}",
-              file=sys.stderr)
+        print(_error_line(err), file=sys.stderr)
         return 1
-    print(json.dumps(result_dict(result)) if args.json else format_result(result))
-    return 0
+    failed = 0
+    for number, src, tgt, out in jobs:
+        where = f"--pairs {args.pairs}:{number}: " if args.pairs is not None else ""
+        t0 = time.perf_counter()
+        try:
+            result = _register_one(registrar, src, tgt, out)
+        except Exception as err:  # noqa: BLE001 - one line per pair, the others go on
+            print(_error_line(err, where), file=sys.stderr)
+            failed += 1
+            continue
+        wall = time.perf_counter() - t0
+        if args.pairs is None:
+            print(json.dumps(result_dict(result)) if args.json else format_result(result))
+        elif args.json:
+            print(json.dumps({"line": number, "source": str(src), "target": str(tgt),
+                              "wall_s": wall, **result_dict(result)}), flush=True)
+        else:
+            print(f"== {args.pairs}:{number}: {src} -> {tgt} ({1000 * wall:.0f} ms)\n"
+                  f"{format_result(result)}", flush=True)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
