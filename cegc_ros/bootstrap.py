@@ -382,9 +382,19 @@ def ensure_venv() -> None:
 # --- the job's environment ---------------------------------------------------------------
 
 
+def checkout_domain_id(root: Path | None = None) -> int:
+    """A ROS domain in 1..100 fixed for this checkout (from a hash of its path): ``env`` prints
+    it, so that a node in one terminal and a replay in another, each after
+    ``eval "$(python3 -m cegc_ros.bootstrap env)"``, share a domain."""
+    digest = hashlib.sha256(str((root or ROOT).resolve()).encode()).hexdigest()
+    return 1 + int(digest, 16) % 100
+
+
 def job_environment(base: dict[str, str] | None = None, *,
-                    localhost: bool = True) -> dict[str, str]:
-    """The environment for a job in .venv (``base`` defaults to os.environ)."""
+                    localhost: bool = True, stable_domain: bool = False) -> dict[str, str]:
+    """The environment for a job in .venv (``base`` defaults to os.environ). Without a
+    ROS_DOMAIN_ID of the user's, a random one (parallel test runs stay apart), or with
+    ``stable_domain`` this checkout's (:func:`checkout_domain_id`)."""
     env = dict(os.environ if base is None else base)
     prefix = str(VENV)
     env["VIRTUAL_ENV"] = prefix
@@ -398,7 +408,8 @@ def job_environment(base: dict[str, str] | None = None, *,
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if env.get("ROS_DOMAIN_ID", "0") in ("", "0"):   # 0: every ROS install's default
-        env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
+        env["ROS_DOMAIN_ID"] = str(checkout_domain_id() if stable_domain
+                                   else random.SystemRandom().randint(1, 100))
     env["CEGC_ROS_BOOTSTRAP"] = "1"
     return allocator_environment(env, None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path())
 
@@ -433,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         ensure_system_libraries()
         ensure_venv()
-        env = job_environment(localhost=job == "test")
+        env = job_environment(localhost=job == "test", stable_domain=job == "env")
         if job == "setup":
             return 0
         if job == "env":

@@ -41,6 +41,23 @@ def test_job_environment_keeps_dds_local_and_picks_a_domain(monkeypatch):
     assert bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="0"))["ROS_DOMAIN_ID"] != "0"
 
 
+def test_env_prints_the_same_domain_every_time_in_one_checkout(monkeypatch, tmp_path):
+    monkeypatch.setattr(bootstrap, "jemalloc_path", lambda: None)
+    base = {"PATH": "/usr/bin"}
+    a = bootstrap.job_environment(base, stable_domain=True)["ROS_DOMAIN_ID"]
+    assert a == bootstrap.job_environment(base, stable_domain=True)["ROS_DOMAIN_ID"]
+    assert a == str(bootstrap.checkout_domain_id()) and 1 <= int(a) <= 100
+    others = {bootstrap.checkout_domain_id(tmp_path / f"clone{i}") for i in range(20)}
+    assert len(others) > 5                                 # other clones: other domains
+    assert bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="7"), stable_domain=True)["ROS_DOMAIN_ID"] == "7"
+    env = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}
+    printed = [subprocess.run([sys.executable, "-m", "cegc_ros.bootstrap", "env"], cwd=REPO, env=env,
+                              capture_output=True, text=True, timeout=300, check=True).stdout
+               for _ in range(2)]
+    lines = [[ln for ln in out.splitlines() if ln.startswith("export ROS_DOMAIN_ID=")] for out in printed]
+    assert lines[0] == lines[1] == [f"export ROS_DOMAIN_ID={a}"]
+
+
 def test_tests_run_on_the_domain_the_bootstrap_prints():
     """The bootstrap prints its ROS_DOMAIN_ID before it starts pytest; the node tests use it."""
     code = "import sys; sys.path.insert(0, 'test'); import ros_helpers as r; print(r.DOMAIN_ID)"

@@ -60,6 +60,14 @@ def test_unknown_node_argument_is_a_usage_error():
                            "go after --ros-args; see --help)"]
 
 
+@pytest.mark.parametrize("args", [["--help"], ["--ros-args", "--help"], ["--ros-args", "-p", "sync.slop:=0.1", "-h"]])
+def test_help_is_usage_wherever_it_is_asked_for(args):
+    """``--ros-args --help`` used to end in rclpy's UnknownROSArgsError; it is usage too."""
+    out = _run("-m", "cegc_ros.node", *args)
+    assert out.returncode == 0 and out.stderr == ""
+    assert out.stdout.startswith("usage: register_node") and "preprocess.min_range" in out.stdout
+
+
 def test_replay_without_a_node_is_one_line_every_time(tmp_path):
     from cegc_ros.data.bag import write_pairs
     from cegc_ros.data.protocols import make_pairs

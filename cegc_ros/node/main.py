@@ -54,7 +54,7 @@ def main(args: Sequence[str] | None = None, engine_factory: Any = None,
     """
     argv = list(sys.argv if args is None else args)
     own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
-    if "-h" in own or "--help" in own:
+    if any(a in ("-h", "--help") for a in argv[1:]):   # also after --ros-args (rclpy has no --help)
         if managed:
             print("register_lifecycle_node: register_node as a managed (lifecycle) node; it "
                   "starts unconfigured\n(configure, activate, deactivate, cleanup, shutdown: "
