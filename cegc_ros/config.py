@@ -24,12 +24,21 @@ def _meta(description: str, lo: float | None = None, hi: float | None = None,
 class PreprocessConfig:
     """How raw clouds (metres) become bounded clouds and the network's input (cegc_ros/bounding.py)."""
 
+    min_range: float = field(default=0.0, metadata=_meta(
+        "Points nearer than this many metres to the cloud frame's origin (the sensor) are "
+        "dropped and counted; 0 keeps them. Points at exactly (0, 0, 0) (no return) and "
+        "non-finite points are always dropped.", 0.0, 1000.0))
+    max_range: float = field(default=0.0, metadata=_meta(
+        "Points farther than this many metres from the cloud frame's origin are dropped and "
+        "counted; 0 keeps them.", 0.0, 100000.0))
     voxel_size: float = field(default=0.0, metadata=_meta(
         "Voxel-grid size in metres applied to both input clouds; 0 derives it from the clouds: "
-        "voxel_ratio x the larger bounding-box side.", 0.0, 10.0))
+        "voxel_ratio x the larger robust extent (cegc_ros/bounding.py).", 0.0, 10.0))
     voxel_ratio: float = field(default=0.01, metadata=_meta(
         "Adaptive voxel grid (when voxel_size is 0), as a fraction of the larger of the two "
-        "clouds' largest bounding-box sides; 0 with voxel_size 0 switches the grid off.", 0.0, 0.2))
+        "clouds' robust extents (the largest side of the box holding all but 2% of the points "
+        "at each end of each axis, so flying pixels do not inflate it); 0 with voxel_size 0 "
+        "switches the grid off.", 0.0, 0.2))
     max_points: int = field(default=20000, metadata=_meta(
         "Most points per cloud after the voxel grid: a cloud above it is re-gridded coarser, "
         "then subsampled. Bounds the time and memory of every later stage (ICP, fitness).",

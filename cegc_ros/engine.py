@@ -81,6 +81,7 @@ class RegistrationResult:
     refined: str = "none"                # "none" | "icp"
     runtime: str = "torch"               # what ran the network: "torch" | "onnxruntime" | "torch.compile"
     voxel_size: float = 0.0              # metres of the grid that bounded the input (0: none)
+    dropped: tuple[Any, Any] = ()        # bounding.Dropped of source and target: input hygiene
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
 
 
@@ -320,7 +321,8 @@ class Registrar:
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
-            reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, timings=timings)
+            reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, dropped=bounded.dropped,
+            timings=timings)
 
 
 class _StageClock:

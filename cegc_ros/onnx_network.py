@@ -6,7 +6,7 @@ is exported once to ONNX and run by ONNX Runtime, which fuses the attention and 
 layers' epilogues that torch runs as separate kernels (docs/performance.md has the measured
 gain and the command).
 
-    export_onnx(checkpoint, out)         # python -m cegc_ros.tools.export_onnx CKPT [OUT]
+    export_onnx(model, checkpoint, out)  # python -m cegc_ros.tools.export_onnx CKPT [OUT]
     net = OnnxNetwork.for_checkpoint(checkpoint, cfg)   # None when no matching export exists
     net.score_candidates(...)            # the torch method's signature and outputs
 
@@ -54,19 +54,17 @@ def onnx_path_for(checkpoint: str | Path) -> Path:
     return Path(checkpoint).with_suffix(".onnx")
 
 
-def export_onnx(checkpoint: str | Path, out: str | Path | None = None, learned_candidates: int = 3
-                ) -> Path:
-    """Export the candidate path of ``checkpoint`` (``learned_candidates`` baked in) to ``out``
-    (default :func:`onnx_path_for`). Needs the ``onnx`` package (export time only)."""
+def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = None,
+                learned_candidates: int = 3) -> Path:
+    """Export the candidate path of ``model`` (the CEGC loaded from ``checkpoint``, on the CPU;
+    ``learned_candidates`` baked in) to ``out`` (default :func:`onnx_path_for`), recording the
+    checkpoint's SHA-256. Needs the ``onnx`` package (export time only)."""
     import torch
-
-    from .engine import load_checkpoint
     try:
         import onnx
     except ModuleNotFoundError as err:
         raise OnnxExportError("exporting needs the onnx package (pip install onnx)") from err
     out = Path(out) if out is not None else onnx_path_for(checkpoint)
-    model, _ = load_checkpoint(checkpoint, "cpu")
 
     class CandidatePath(torch.nn.Module):
         """score_candidates with the learned-candidate count fixed, for the exporter."""

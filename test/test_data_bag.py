@@ -156,6 +156,15 @@ def test_cli_writes_bag_and_rejects_bad_input(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:                     # out exists now
         make_bag.main(argv)
     assert exc.value.code == 2 and "exists already" in capsys.readouterr().err
+    assert make_bag.main([*argv, "--overwrite"]) == 0          # the README's block, run twice
+    assert [p.info["index"] for p in B.read_pairs(out)] == [0, 1, 2]
+    keep = tmp_path / "not_a_bag"
+    keep.mkdir()
+    (keep / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exc:
+        make_bag.main([*argv[:-4], str(keep), "--storage", "mcap", "--no-progress", "--overwrite"])
+    assert exc.value.code == 2 and "is not a rosbag2 bag" in capsys.readouterr().err
+    assert (keep / "notes.txt").read_text() == "mine"
     for bad in (["--pairs", "0"], ["--protocol", "kitti"], ["--seed", "-1"]):
         args = list(argv)
         args[args.index(bad[0]) + 1] = bad[1]

@@ -85,11 +85,13 @@ def test_mismatched_checkpoint(tiny_checkpoint, tmp_path):
 
 def test_too_few_points_and_bad_shapes(tiny_checkpoint):
     reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu")
-    with pytest.raises(ValueError, match="source has 10 finite points"):
-        reg.register(np.zeros((10, 3)), scene(200))
+    with pytest.raises(ValueError, match="source has 10 usable points"):
+        reg.register(scene(10), scene(200))
+    with pytest.raises(ValueError, match=r"source has 0 usable points \(0 non-finite, 300 at \(0, 0, 0\)"):
+        reg.register(np.zeros((300, 3)), scene(200))
     nan_cloud = scene(200)
     nan_cloud[5:] = np.nan
-    with pytest.raises(ValueError, match="target has 5 finite points"):
+    with pytest.raises(ValueError, match="target has 5 usable points"):
         reg.register(scene(200), nan_cloud)
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         reg.register(np.zeros((100, 2)), scene(200))
@@ -329,17 +331,21 @@ def test_ablation_switches_select_the_path(tiny_checkpoint):
 def test_work_is_bounded_whatever_the_input_size(tiny_checkpoint):
     """A 400k-point cloud is gridded and capped: later stages see at most max_points, and the
     adaptive voxel (voxel_ratio x extent) is reported."""
-    from cegc_ros.bounding import bound_pair
+    from cegc_ros.bounding import bound_pair, robust_extent
     rng = np.random.default_rng(0)
     big = scene(400_000, seed=6) + rng.normal(0, 0.002, (400_000, 3)).astype(np.float32)
     pre = PreprocessConfig(num_points=256, max_points=5000)
     bounded = bound_pair(big, big[::2], pre, 16)
     assert len(bounded.source) <= 5000 and len(bounded.target) <= 5000
-    assert bounded.voxel == pytest.approx(0.01 * 3.0, rel=0.02)            # the room corner is 3 m wide
+    # voxel_ratio x the robust extent (the trimmed box; the room corner is 3 m wide)
+    assert bounded.voxel == pytest.approx(0.01 * max(robust_extent(big), robust_extent(big[::2])))
+    assert 0.8 * 0.03 < bounded.voxel <= 0.03
     assert bounded.input_points == (400_000, 200_000)
     off = bound_pair(big, big, PreprocessConfig(voxel_ratio=0.0, max_points=5000), 16)
-    assert off.voxel == 0.0 and len(off.source) == 5000                    # no grid: subsampled to the cap
-    res = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre).register(big, big)
+    assert off.voxel == 0.0                                                # no grid: subsampled to the cap,
+    assert len(off.source) == 5000 - off.dropped[0].isolated               # less the few isolated ones
+    assert off.dropped[0].isolated < 0.002 * 5000
+    res = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre).register(big, big[::2])
     assert res.voxel_size == pytest.approx(bounded.voxel)
 
 

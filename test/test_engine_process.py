@@ -134,3 +134,20 @@ def test_thread_environment_defaults_and_the_users_choice_wins(monkeypatch):
             assert eng.register(_cloud(64, 0), _cloud(64, 1)).omp_wait_policy == expected
         finally:
             eng.close()
+
+
+def test_the_engine_process_does_not_import_a_copy_in_the_working_directory(tmp_path, monkeypatch):
+    """A node started from a source checkout runs the cegc_ros it imported; ``python -m`` in the
+    child would have put the cwd first and imported the checkout's copy instead."""
+    import cegc_ros
+    decoy = tmp_path / "cegc_ros"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("raise ImportError('the copy in the working directory')\n")
+    monkeypatch.chdir(tmp_path)
+    eng = EngineProcess(PreprocessConfig(), EngineConfig(), factory="fake_engines:echo")
+    try:
+        eng.start()
+        assert eng.register(_cloud(64, 0), _cloud(64, 1)).pid == eng.info.pid
+    finally:
+        eng.close()
+    assert cegc_ros.__file__ != str(decoy / "__init__.py")

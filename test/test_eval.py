@@ -259,6 +259,8 @@ def test_demo_runs_baselines_on_its_cached_bag_and_fails_in_one_line(tmp_path, c
     out = capsys.readouterr().out
     assert "fgr" in out and "Error(R) < 5 deg" in out   # the table's format: test_demo_output.py
     (bag,) = tmp_path.glob("7scenes_test_seed0_2pairs_*")
+    assert sorted(p.name for p in bag.iterdir()) == [f"{bag.name}.db3", "metadata.yaml"]   # no .partial
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     stamp = (bag / "metadata.yaml").stat().st_mtime_ns
     assert demo.main(args) == 0                      # the cached bag is reused, not rewritten
     assert (bag / "metadata.yaml").stat().st_mtime_ns == stamp

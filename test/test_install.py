@@ -131,14 +131,19 @@ def test_colcon_route_builds_a_runnable_ament_python_package(tmp_path):
     probe = (
         "from ament_index_python.packages import get_package_prefix as p; import cegc_ros; "
         "print(p('cegc_ros')); print(cegc_ros.__file__)")
-    script = (f'. "{ws}/install/setup.sh" && "{sys.executable}" -c "{probe}"')
-    out = run(["sh", "-c", script], timeout=60, cwd=tmp_path,
-              env=dict(env, COLCON_CURRENT_PREFIX=str(ws / "install"))).stdout.split()
+    # The README sources install/setup.bash (colcon-bash; colcon-core alone writes setup.sh).
+    assert (ws / "install" / "setup.bash").is_file()
+    script = (f'source "{ws}/install/setup.bash" && "{sys.executable}" -c "{probe}"')
+    out = run(["bash", "-c", script], timeout=60, cwd=tmp_path, env=env).stdout.split()
     assert Path(out[-2]) == prefix
     assert Path(out[-1]).is_relative_to(prefix / "lib" / PY / "site-packages")
 
-    script = f'. "{ws}/install/setup.sh" && exec "{executable}" --help'
-    proc = run(["sh", "-c", script], timeout=120, cwd=tmp_path,
-               env=dict(env, COLCON_CURRENT_PREFIX=str(ws / "install")))
+    script = f'source "{ws}/install/setup.bash" && exec "{executable}" --help'
+    proc = run(["bash", "-c", script], timeout=120, cwd=tmp_path, env=env)
     assert "register_node" in proc.stdout
     assert "Traceback" not in proc.stderr
+    # Every tool the README names is where `ros2 run cegc_ros <tool>` looks, and the network's
+    # ONNX export ships beside the weights.
+    for tool in ("cegc-make-bag", "cegc-replay", "cegc-register", "cegc-eval"):
+        assert os.access(prefix / "lib" / "cegc_ros" / tool, os.X_OK), tool
+    assert (prefix / "share" / "cegc_ros" / "weights" / "cegc_views.onnx").is_file()

@@ -295,7 +295,7 @@ def test_runtime_parameters_over_the_parameter_service(ros, pairs):
 def test_replay_records_poses_next_to_ground_truth(ros, pairs, tmp_path):
     from cegc_ros.data.bag import write_pairs
     from cegc_ros.tools.replay import main as replay_main
-    from cegc_ros.tools.replay import replay_bag
+    from cegc_ros.replay import replay_bag
 
     bag = tmp_path / "pairs"
     write_pairs(bag, pairs[:3])
@@ -324,12 +324,12 @@ def test_sigint_exits_cleanly():
     try:
         ready = ""
         end = time.monotonic() + 90
-        while time.monotonic() < end and "ready:" not in ready:
+        while time.monotonic() < end and "ready (" not in ready:
             line = proc.stdout.readline()
             if not line:
                 break
             ready += line
-        assert "ready:" in ready, ready
+        assert "ready (pairs mode):" in ready and "within slop 0.05 s" in ready, ready
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)
         assert proc.returncode == 0, ready + out

@@ -202,6 +202,7 @@ def test_every_transition_in_sequential_mode(sequence):
         code, out = finish(proc)
         assert code == 0, out
         assert "shut down" in out
+        assert "unconfigured: waiting for the configure transition" in out, out
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -188,7 +188,7 @@ def test_bytes_that_are_not_a_point_cloud2_are_take_errors_and_the_node_goes_on(
 def test_namespaced_nodes_have_their_own_status_and_replay_finds_its_node(stack, tmp_path):
     from cegc_ros.data.bag import write_pairs
     from cegc_ros.data.protocols import make_pairs
-    from cegc_ros.tools.replay import replay_bag
+    from cegc_ros.replay import replay_bag
 
     node1, probe1 = stack.node("fake_engines:echo", "/robot1")
     node2, probe2 = stack.node("fake_engines:echo", "/robot2")
@@ -223,3 +223,39 @@ def test_a_pose_whose_only_defect_is_its_covariance_is_published_as_undetermined
     values = node.diagnostics_values()
     assert values["covariance_fallbacks"] == "1" and values["pairs_out"] == "1"
     assert values["rejected.invalid_result"] == "0"
+
+
+def test_sensor_defects_are_dropped_and_counted_per_cloud(stack):
+    """An organized 64 x 32 cloud (an OS1-style sweep, rows of the image) with NaN holes,
+    (0, 0, 0) no-returns and returns beyond preprocess.max_range: the engine gets only the
+    usable points, /diagnostics counts each kind per cloud."""
+    node, probe = stack.node("fake_engines:echo", "/defects", preprocess__max_range=20.0)
+    rng = np.random.default_rng(3)
+    sweep = rng.uniform(-10, 10, (64 * 32, 3)).astype(np.float32)    # all within 17.4 m
+    sweep[::7] = 0.0                                                    # 293 no returns
+    holes = rng.choice(np.flatnonzero(sweep.any(1)), 100, replace=False)
+    sweep[holes] = np.nan
+    r = np.linalg.norm(sweep, axis=1)
+    far = rng.choice(np.flatnonzero(np.isfinite(r) & (r > 7.0)), 40, replace=False)
+    sweep[far] *= 3.0                                                   # 21-52 m out
+    msg = rh.cloud(sweep, "os_sensor", 5000 * SEC)
+    msg.height, msg.width, msg.row_step = 64, 32, 32 * msg.point_step   # organized
+    seen: list[np.ndarray] = []
+    register = node.engine.register
+
+    def spy(src, tgt, update=None):
+        seen.append(np.array(src))
+        return register(src, tgt, update)
+
+    node.engine.register = spy
+    t = 5000 * SEC
+    probe.send(msg, rh.cloud(_pts(500), "b", t))
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 60.0)
+    values = node.diagnostics_values()
+    n_zero = len(range(0, 64 * 32, 7))
+    (src,) = seen
+    assert len(src) == 64 * 32 - n_zero - 100 - 40
+    assert np.isfinite(src).all() and src.any(1).all() and (np.linalg.norm(src, axis=1) <= 20.0).all()
+    assert (values["dropped.no_return.source"], values["dropped.non_finite.source"],
+            values["dropped.out_of_range.source"]) == (str(n_zero), "100", "40")
+    assert values["dropped.no_return.target"] == values["dropped.non_finite.target"] == "0"

@@ -12,7 +12,7 @@ import torch
 from cegc_ros.config import EngineConfig, PreprocessConfig
 from cegc_ros.engine import CheckpointError, Registrar, default_weights, save_checkpoint
 from cegc_ros.model import CEGC, ModelConfig
-from cegc_ros.onnx_network import OnnxNetwork, export_onnx, onnx_path_for
+from cegc_ros.onnx_network import OnnxNetwork, onnx_path_for
 from cegc_ros.tools.export_onnx import main as export_main
 from cegc_ros.tools.export_onnx import parity
 

@@ -42,38 +42,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cegc_ros.data.codec import dequantise, quantise  # noqa: F401  (the shards' codec)
+from cegc_ros.data.views import PairRecord, RoomPairs, materialise
+
 if TYPE_CHECKING:
     from cegc_ros.data.protocols import Pair
-    from cegc_ros.data.views import RoomPairs
 
 FORMAT_VERSION = 1
 MANIFEST = "cache.json"
 _SHARD_RE = re.compile(r"^shard_(\d{7})_(\d{7})\.npz$")
-_Q = 32767
 
 
 class PairCacheError(Exception):
     """A cache directory or shard that cannot be read or written; the message names it."""
-
-
-# --------------------------------------------------------------------------------------------
-# Point storage codec
-# --------------------------------------------------------------------------------------------
-
-def quantise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(N, 3) points -> (int16 (N, 3) codes, (3,) float64 origin, step in metres)."""
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(p) == 0:
-        return np.zeros((0, 3), np.int16), np.zeros(3), 1.0
-    origin = 0.5 * (p.min(0) + p.max(0))
-    step = max(float(np.abs(p - origin).max()) / _Q, 1e-7)
-    q = np.clip(np.rint((p - origin) / step), -_Q, _Q).astype(np.int16)
-    return q, origin, step
-
-
-def dequantise(q: np.ndarray, origin: np.ndarray, step: float) -> np.ndarray:
-    """Codes back to (N, 3) float32 metres (the exact inverse used everywhere)."""
-    return (q.astype(np.float64) * step + np.asarray(origin, np.float64)).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -255,8 +236,6 @@ class PairCache:
         return dequantise(q, t["frag_origin"][frag], float(t["frag_step"][frag]))
 
     def __getitem__(self, i: int) -> Pair:
-        from cegc_ros.data.views import PairRecord, materialise
-
         n = len(self.infos)
         if not -n <= i < n:
             raise IndexError(f"pair {i} outside 0..{n - 1}")

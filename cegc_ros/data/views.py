@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from cegc_ros.data import splits
-from cegc_ros.data.pair_cache import dequantise, quantise
+from cegc_ros.data.codec import dequantise, quantise
 from cegc_ros.data.protocols import Pair, random_rotation_euler, transform_points
 from cegc_ros.data.rooms import RichRoom, get_rich_room
 from cegc_ros.data.scenes import _camera_rotation

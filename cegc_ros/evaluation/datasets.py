@@ -161,13 +161,17 @@ def cached_bag(cache: str | Path, protocol: str, split: str, n: int, seed: int =
     if (bag / "metadata.yaml").is_file():
         return bag
     cache.mkdir(parents=True, exist_ok=True)
+    # Written under a hidden folder, then moved: the bag directory keeps its final name while
+    # it is written, because rosbag2 names its storage file after it (bag/bag.db3).
     tmp = cache / f".{bag.name}.partial"
     if tmp.exists():
         shutil.rmtree(tmp)
+    tmp.mkdir()
     pairs: Iterable[Any] = iter_pairs(protocol, split, n, seed)
     if progress:
         from tqdm import tqdm
         pairs = tqdm(pairs, total=n, unit="pair", desc=f"bag {bag.name}", file=sys.stderr)
-    write_pairs(tmp, pairs, protocol=protocol, seed=seed)
-    tmp.rename(bag)
+    write_pairs(tmp / bag.name, pairs, protocol=protocol, seed=seed)
+    (tmp / bag.name).rename(bag)
+    tmp.rmdir()
     return bag

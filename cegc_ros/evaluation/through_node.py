@@ -61,7 +61,7 @@ def run_through_node(bag: str | Path, pairs: Sequence[EvalPair], methods: Sequen
     import tempfile
     import threading
 
-    from cegc_ros.tools.replay import replay_bag
+    from cegc_ros.replay import replay_bag
 
     env = dds_environment()
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID",

@@ -184,7 +184,7 @@ class EngineProcess:
             ours, theirs = socket.socketpair()
             try:
                 proc = subprocess.Popen(
-                    [sys.executable, "-m", "cegc_ros.node.engine_process", str(theirs.fileno())],
+                    [sys.executable, "-c", _CHILD_BOOT, str(theirs.fileno())],
                     pass_fds=(theirs.fileno(),), env=self._child_env(), stdin=subprocess.DEVNULL)
             except OSError as err:
                 ours.close()
@@ -349,6 +349,14 @@ def _child_main(conn: Connection) -> None:
             conn.send(reply)
         except (OSError, ValueError):
             return
+
+
+#: How the child starts: ``python -c`` with the working directory taken off sys.path first, so
+#: that a node started from a source checkout runs the engine it imported itself (the
+#: installed one), not the checkout's copy that ``python -m`` would find in the cwd.
+_CHILD_BOOT = ("import sys; sys.path.pop(0); from multiprocessing.connection import Connection; "
+               "from cegc_ros.node.engine_process import _child_main; "
+               "_child_main(Connection(int(sys.argv[1])))")
 
 
 if __name__ == "__main__":

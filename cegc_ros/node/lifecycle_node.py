@@ -52,6 +52,8 @@ class RegisterLifecycleNode(RegistrationNodeMixin, LifecycleNode):
         # Publishers made from here on (by the mixin and the modes) are lifecycle publishers;
         # rclpy's own ones (parameter events, the lifecycle's transition events) were made above.
         self._make_lifecycle_publishers = True
+        self.get_logger().info("unconfigured: waiting for the configure transition "
+                               f"(lifecycle services on {self.get_fully_qualified_name()}/...)")
 
     def create_publisher(self, *args: Any, **kwargs: Any) -> Any:
         """A lifecycle publisher (published only while active) for the node's outputs."""

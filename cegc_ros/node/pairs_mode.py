@@ -12,32 +12,12 @@ through the node.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 from cegc_ros.config import SyncConfig
+from cegc_ros.node.support import Job, Offer
+from cegc_ros.node.worker import RegistrationWorker
 from cegc_ros.pairing import ApproximatePairer
-
-
-@dataclass
-class Job:
-    """One registration for the worker: ``source`` onto ``target`` (both PointCloud2).
-
-    The outputs carry the source's stamp and the target's frame.
-    """
-
-    source: Any
-    target: Any
-    received: float      # time.monotonic() when the job was complete (the latency's start)
-
-
-@dataclass
-class Offer:
-    """What one incoming message produced."""
-
-    job: Job | None = None
-    unpaired: list[str] = field(default_factory=list)   # one line per cloud given up on, by side
-    unpaired_sides: list[str] = field(default_factory=list)
 
 
 class PairsMode:
@@ -80,8 +60,6 @@ class PairsMode:
 
     def make_worker(self, node: Any) -> Any:
         """The worker that registers each pair with the node's engine and publishes it."""
-        from cegc_ros.node.worker import RegistrationWorker   # it imports Job from here
-
         return RegistrationWorker(node.engine, node.stats, node._log, settings=lambda: node.cfg,
                                   publish=node.publish_result, on_result=self.on_result,
                                   info=node.get_logger().info)

@@ -34,7 +34,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from cegc_ros.node.engine_process import EngineProcess
-from cegc_ros.node.pairs_mode import Job, PairsMode
+from cegc_ros.node.pairs_mode import PairsMode
 from cegc_ros.node.sequential_mode import SequentialMode
 from cegc_ros.node.params import (
     ENGINE_SECTIONS,
@@ -47,7 +47,7 @@ from cegc_ros.node.params import (
     param_specs,
 )
 from cegc_ros.node.stats import NodeStats, Rejected
-from cegc_ros.node.support import ThrottledLog
+from cegc_ros.node.support import Job, ThrottledLog
 from cegc_ros.refine import UNCONSTRAINED_VARIANCE
 from msg_adapters.markers import correspondence_markers
 from msg_adapters.nav import time_to_ns
@@ -370,10 +370,12 @@ class RegisterNode(RegistrationNodeMixin, Node):
             raise
         inp, sync = self.cfg["input"], self.cfg["sync"]
         info = self.engine.info
+        inputs = (f"pairs of source_cloud and target_cloud within slop {sync.slop} s"
+                  if self.mode.name == "pairs" else "keyframe odometry of cloud")
         self.get_logger().info(
-            f"ready: device {info.device}, checkpoint {info.checkpoint}, engine process "
-            f"{info.pid}, input QoS {'reliable' if inp.reliable else 'sensor-data (best effort)'},"
-            f" slop {sync.slop} s")
+            f"ready ({self.mode.name} mode): device {info.device}, checkpoint {info.checkpoint}, "
+            f"engine process {info.pid}, input QoS "
+            f"{'reliable' if inp.reliable else 'sensor-data (best effort)'}, {inputs}")
 
     def destroy_node(self) -> None:
         self.close()

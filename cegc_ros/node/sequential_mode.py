@@ -33,9 +33,8 @@ import numpy as np
 
 from cegc_ros.config import SequentialConfig, SyncConfig
 from cegc_ros.node.engine_process import EngineDied, EngineError
-from cegc_ros.node.pairs_mode import Job, Offer
 from cegc_ros.node.stats import Rejected
-from cegc_ros.node.support import percentiles_ms
+from cegc_ros.node.support import Job, Offer, percentiles_ms
 from cegc_ros.node.worker import RegistrationWorker
 from cegc_ros.sequential import KeyframeOdometry
 from msg_adapters.nav import time_to_ns
@@ -195,7 +194,7 @@ class OdometryWorker(RegistrationWorker):
     def process(self, job: Job) -> None:
         """One cloud; raises Rejected with the reason it gives no odometry."""
         cfg = self._settings()
-        xyz = self.points("cloud", job.source, cfg["input"].max_points)
+        xyz = self.points("cloud", job.source, cfg["input"].max_points, cfg["preprocess"])
         odo = self.mode.odometry
         if cfg["sequential"] is not self._sequential:    # sections are replaced whole on change
             self._sequential = cfg["sequential"]

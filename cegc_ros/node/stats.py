@@ -26,6 +26,10 @@ COUNTERS = (
     "frame_changes.source", "frame_changes.target", "thinned_clouds", "take_errors",
     "output_errors", "covariance_fallbacks", "engine_restarts",
 ) + tuple(f"rejected.{r}" for r in REJECT_REASONS)
+#: Input hygiene (cegc_ros.bounding.clean_points): points dropped from each cloud, by reason;
+#: ``dropped.<reason>.<side>`` (source, target; cloud in sequential mode).
+DROP_REASONS = ("non_finite", "no_return", "out_of_range", "isolated")
+COUNTERS += tuple(f"dropped.{r}.{side}" for r in DROP_REASONS for side in ("source", "target"))
 
 
 class Rejected(Exception):
@@ -82,6 +86,8 @@ class NodeStats:
             lat = list(self._latency)
             eng = list(self._engine_time)
         values = {k: str(counts.get(k, 0)) for k in COUNTERS}
+        values.update({k: str(v) for k, v in sorted(counts.items())
+                       if k.startswith("dropped.") and k not in values})     # sequential: .cloud
         for q, v in zip((50, 90, 99), percentiles_ms(lat)):
             values[f"latency_p{q}_ms"] = f"{v:.1f}"
         values["latency_max_ms"] = f"{max(lat) * 1e3:.1f}" if lat else "nan"

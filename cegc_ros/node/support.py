@@ -1,4 +1,6 @@
-"""Small ROS-free pieces of the node: the one-slot mailbox, throttled logging, thinning."""
+"""Small ROS-free pieces of the node: the one-slot mailbox, throttled logging, thinning, and the
+job / offer records that the modes hand to the worker (here, so that the modes and the worker
+import them from one place and not from each other)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -88,3 +91,24 @@ def thin(xyz: np.ndarray, max_points: int) -> np.ndarray:
     if n <= max_points:
         return xyz
     return xyz[:: math.ceil(n / max_points)]
+
+
+@dataclass
+class Job:
+    """One registration for the worker: ``source`` onto ``target`` (both PointCloud2).
+
+    The outputs carry the source's stamp and the target's frame.
+    """
+
+    source: Any
+    target: Any
+    received: float      # time.monotonic() when the job was complete (the latency's start)
+
+
+@dataclass
+class Offer:
+    """What one incoming message produced."""
+
+    job: Job | None = None
+    unpaired: list[str] = field(default_factory=list)   # one line per cloud given up on, by side
+    unpaired_sides: list[str] = field(default_factory=list)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from cegc_ros.node.engine_process import EngineDied, EngineStartError
-from cegc_ros.node.pairs_mode import Job
+from cegc_ros.node.support import Job
 from cegc_ros.node.stats import NodeStats, Rejected
 from cegc_ros.node.support import Mailbox, ThrottledLog, thin
 
@@ -102,8 +102,8 @@ class RegistrationWorker:
     def process(self, job: Job) -> None:
         """One job, start to end; raises Rejected with the reason it gives no pose."""
         cfg = self._settings()
-        src_xyz = self.points("source", job.source, cfg["input"].max_points)
-        tgt_xyz = self.points("target", job.target, cfg["input"].max_points)
+        src_xyz = self.points("source", job.source, cfg["input"].max_points, cfg["preprocess"])
+        tgt_xyz = self.points("target", job.target, cfg["input"].max_points, cfg["preprocess"])
         update = None
         if self._engine_dirty:
             self._engine_dirty = False
@@ -120,6 +120,9 @@ class RegistrationWorker:
             self._restart(err)
             raise Rejected("engine_error", str(err)) from err
         self.stats.engine_time(time.perf_counter() - t0)
+        for side, dropped in zip(("source", "target"), getattr(result, "dropped", ())):
+            if dropped.isolated:                     # found by the engine, after its voxel grid
+                self.stats.add(f"dropped.isolated.{side}", dropped.isolated)
         if not result.valid:
             raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
         self.stats.last_fitness = float(result.fitness)
@@ -138,9 +141,12 @@ class RegistrationWorker:
         except EngineStartError as start_err:
             self._log("engine_start", f"the engine did not start again: {start_err}")
 
-    def points(self, side: str, msg: Any, max_points: int) -> np.ndarray:
-        """Finite (N, 3) float32 points of one input cloud, at most ``max_points``; Rejected
-        with the reason when there are none to use."""
+    def points(self, side: str, msg: Any, max_points: int, preprocess: Any = None) -> np.ndarray:
+        """Usable (N, 3) float32 points of one input cloud (finite, not a no-return (0, 0, 0),
+        within ``preprocess.min_range`` / ``max_range``: cegc_ros.bounding.clean_points, each
+        drop counted as ``dropped.<reason>.<side>``), at most ``max_points``; Rejected with the
+        reason when there are none to use."""
+        from cegc_ros.bounding import clean_points
         from msg_adapters.point_cloud2 import cloud_to_xyz
 
         try:
@@ -159,9 +165,19 @@ class RegistrationWorker:
             xyz = cloud_to_xyz(msg)  # (N, 3) float32, finite only
         except ValueError as err:
             raise Rejected("malformed_cloud", f"{side} cloud: {err}") from err
+        n_msg = int(msg.width) * int(msg.height)
+        dropped = {"non_finite": n_msg - xyz.shape[0]}
+        if preprocess is not None:
+            xyz, d = clean_points(xyz, preprocess.min_range, preprocess.max_range)
+            dropped.update(no_return=d.no_return, out_of_range=d.out_of_range)
+        for reason, n in dropped.items():
+            if n > 0:
+                self.stats.add(f"dropped.{reason}.{side}", n)
         if xyz.shape[0] == 0:
-            raise Rejected("empty_cloud", f"{side} cloud has no finite points "
-                           f"({int(msg.width) * int(msg.height)} points in the message)")
+            raise Rejected("empty_cloud", f"{side} cloud has no usable points ({n_msg} points "
+                           f"in the message: {dropped.get('non_finite', 0)} non-finite, "
+                           f"{dropped.get('no_return', 0)} at (0, 0, 0), "
+                           f"{dropped.get('out_of_range', 0)} out of range)")
         min_points = self.engine.info.min_points
         if xyz.shape[0] < min_points:
             raise Rejected("too_few_points", f"{side} cloud has {xyz.shape[0]} finite "

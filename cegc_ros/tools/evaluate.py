@@ -85,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-sigma", type=float, default=0.0,
                    help="7scenes protocol: Gaussian noise (clipped at 5 sigma) added to each cloud "
                         "independently, normalised units; the paper's robustness test uses 0.01")
+    p.add_argument("--flying-pixels", type=float, default=0.0, metavar="SHARE",
+                   help="any set: move this share of each cloud's points along their rays out "
+                        "to 3-12 m from the sensor (depth-edge flying pixels; "
+                        "cegc_ros/data/corruption.py), seeded per pair; offline methods only")
     p.add_argument("--seed", type=int, default=0, help="7scenes protocol seed (default 0)")
     p.add_argument("--suite", action="store_true",
                    help="the documented evaluation in one run (cegc_ros/evaluation/suite.py): "
@@ -198,11 +202,30 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
             pairs = pairs[: args.limit]
     if not pairs:
         raise EvalError("no pairs to evaluate")
+    if args.flying_pixels:
+        if not 0.0 < args.flying_pixels <= 0.5:
+            raise EvalError(f"--flying-pixels must be in (0, 0.5], got {args.flying_pixels}")
+        if args.through_node:
+            raise EvalError("--flying-pixels corrupts the clouds offline: not with --through-node")
+        pairs = _with_flying_pixels(pairs, args.flying_pixels)
+        settings["corruption"] = f"{args.flying_pixels:.1%} flying pixels per cloud (3-12 m)"
     settings["command"] = " ".join(["cegc-eval", *argv])
     return evaluate(pairs, methods, thresholds=_thresholds(args, real_fragments),
                     checkpoint=args.checkpoint, baseline_config=_baseline_config(args),
                     node_outcomes=node_outcomes, progress=not args.no_progress, title=title,
                     settings=settings, params_file=args.params)
+
+
+def _with_flying_pixels(pairs: list[EvalPair], share: float) -> list[EvalPair]:
+    """Each pair with ``share`` flying pixels in both clouds (seeded by the pair's position)."""
+    import dataclasses
+
+    import numpy as np
+
+    from cegc_ros.data.corruption import add_flying_pixels
+    return [dataclasses.replace(p, source=add_flying_pixels(p.source, share, np.random.default_rng([i, 0])),
+                                target=add_flying_pixels(p.target, share, np.random.default_rng([i, 1])))
+            for i, p in enumerate(pairs)]
 
 
 def suite_cli(args: argparse.Namespace, argv: Sequence[str]) -> Path:

@@ -70,13 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         from cegc_ros.config import EngineConfig
-        from cegc_ros.engine import CheckpointError, default_weights
+        from cegc_ros.engine import CheckpointError, default_weights, load_checkpoint
         from cegc_ros.onnx_network import OnnxExportError, export_onnx
         ckpt = args.checkpoint or default_weights()
         k = args.learned_candidates or EngineConfig().learned_candidates
+        model, _ = load_checkpoint(ckpt, "cpu")
         with warnings.catch_warnings():     # the tracer's notes on Python ints in the graph
             warnings.simplefilter("ignore")
-            out = export_onnx(ckpt, args.out, k)
+            out = export_onnx(model, ckpt, args.out, k)
         p = parity(ckpt, out)
     except (OSError, ValueError, CheckpointError, OnnxExportError) as err:
         print(f"export_onnx: {err}".splitlines()[0], file=sys.stderr)

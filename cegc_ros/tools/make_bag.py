@@ -36,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", required=True, type=int, help="number of pairs (>= 1)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed, 0..999999 (default 0)")
     p.add_argument("--out", required=True, type=Path,
-                   help="bag directory to create (must not exist)")
+                   help="bag directory to create (must not exist, unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out when it is a rosbag2 bag already (a directory with "
+                        "metadata.yaml); anything else there is never removed")
     p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
                    help="rosbag2 storage plugin (default sqlite3)")
     p.add_argument("--noise", type=float, default=0.0,
@@ -53,7 +56,12 @@ def main(argv: list[str] | None = None) -> int:
     if not 0 <= args.seed <= 999_999:
         parser.error(f"--seed must be in 0..999999, got {args.seed}")
     if args.out.exists():
-        parser.error(f"--out {args.out} exists already; choose a new directory")
+        if not args.overwrite:
+            parser.error(f"--out {args.out} exists already; choose a new directory or add "
+                         f"--overwrite")
+        if not (args.out.is_dir() and (args.out / "metadata.yaml").is_file()):
+            parser.error(f"--out {args.out} exists and is not a rosbag2 bag (no metadata.yaml): "
+                         f"not replaced")
     if not args.out.parent.exists():
         parser.error(f"--out parent directory {args.out.parent} does not exist")
     if args.noise and args.protocol != "modelnet":
@@ -84,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
         pairs = iter_pairs(args.protocol, args.split, args.pairs, args.seed, **kwargs)
     bar = tqdm(pairs, total=args.pairs, unit="pair", desc=f"{args.protocol}/{args.split}",
                disable=args.no_progress)
+    if args.out.exists():          # --overwrite of a bag, checked above
+        import shutil
+        shutil.rmtree(args.out)
     try:
         n = write_pairs(args.out, bar, storage=args.storage, protocol=args.protocol,
                         seed=args.seed)

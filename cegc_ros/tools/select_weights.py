@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=40)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--peers", default="", help="comma-separated classical peers to score on the same pairs")
+    ap.add_argument("--flying-pixels", type=float, default=0.0, metavar="SHARE",
+                    help="move this share of each cloud's points out along their rays to 3-12 m "
+                         "(cegc_ros/data/corruption.py; seeded per pair)")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, valid, fitness, stage seconds)")
     args = ap.parse_args(argv)
@@ -80,6 +83,14 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{args.cache}: no Kinect different-view pairs")
         idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
         pairs = [cache[int(i)] for i in idx]
+        if args.flying_pixels > 0:
+            import dataclasses
+
+            from cegc_ros.data.corruption import add_flying_pixels
+            pairs = [dataclasses.replace(
+                p, source=add_flying_pixels(p.source, args.flying_pixels, np.random.default_rng([int(i), 0])),
+                target=add_flying_pixels(p.target, args.flying_pixels, np.random.default_rng([int(i), 1])))
+                for i, p in zip(idx, pairs)]
         from cegc_ros import baselines
         peers = [m for m in args.peers.split(",") if m]
         for m in peers:

@@ -1,0 +1,39 @@
+"""Sensor defects added to clean clouds, so that robustness is measured, not assumed.
+
+``add_flying_pixels``: depth sensors (Kinect v2, ToF, stereo) return "flying pixels" at depth
+edges, where a pixel mixes a near and a far surface: the point lies on the pixel's ray, but
+anywhere between the two surfaces and beyond. The corruption moves a share of the points along
+their rays from the sensor (the cloud frame's origin) out to a uniformly drawn range in
+``[max(its range, near), far]``: a Kinect v2 room cloud looked like this with 2% of its points
+out to 12 m (issue: real sensors). Used by ``cegc-eval --flying-pixels`` and
+``select_weights --flying-pixels``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Range (metres from the sensor) the flying pixels are pushed out to.
+FLYING_NEAR, FLYING_FAR = 3.0, 12.0
+
+
+def add_flying_pixels(points: np.ndarray, share: float, rng: np.random.Generator,
+                      near: float = FLYING_NEAR, far: float = FLYING_FAR) -> np.ndarray:
+    """(N, 3) metres, sensor at the origin -> a copy with round(share x N) points moved along
+    their rays to ranges in [max(range, near), far]. The ground truth of a pair is unchanged
+    (the moved points are outliers, not surface)."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"flying-pixel share must be in [0, 1], got {share}")
+    out = np.array(points, dtype=np.float64, copy=True)
+    k = int(round(share * len(out)))
+    if k == 0:
+        return out.astype(np.asarray(points).dtype, copy=False)
+    idx = rng.choice(len(out), k, replace=False)
+    p = out[idx]
+    r = np.linalg.norm(p, axis=1)
+    ok = r > 1e-9
+    lo = np.maximum(r[ok], near)
+    new_r = rng.uniform(lo, np.maximum(lo, far))
+    p[ok] *= (new_r / r[ok])[:, None]
+    out[idx] = p
+    return out.astype(np.asarray(points).dtype, copy=False)

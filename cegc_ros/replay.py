@@ -1,0 +1,355 @@
+"""Replaying a pair bag into a running register_node and recording the poses it returns: the
+part of ``cegc-replay`` (cegc_ros/tools/replay.py) that ``cegc-eval --through-node``
+(cegc_ros/evaluation/through_node.py) reuses, so that evaluation does not import a tool.
+
+:func:`replay_bag` publishes the bag's ``/cegc/source`` and ``/cegc/target`` messages as stored
+(serialized CDR, no decoding) onto the node's inputs with RELIABLE QoS, paced by the bag's
+stamps or in lockstep, and matches every ``~/pose`` to its pair by header stamp;
+:func:`write_records` and :func:`summary` report the result.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+TOPIC_SOURCE = "/cegc/source"        # the pair-bag layout of cegc_ros.data.bag
+TOPIC_TARGET = "/cegc/target"
+TOPIC_GT = "/cegc/ground_truth"
+
+
+class ReplayError(Exception):
+    """The bag cannot be replayed or the node could not be reached."""
+
+
+@dataclass
+class ReplayRecord:
+    """One pair of the bag and what the node answered.
+
+    T_est / T_gt: (4, 4) row-major nested lists (T_target_source), None when the node published
+    no pose for the pair (dropped, rejected, lost) / the bag has no ground truth for it.
+    latency_s: from publishing the pair's later cloud to receiving its pose (None without pose).
+    """
+
+    index: int
+    stamp_ns: int
+    T_est: list[list[float]] | None
+    T_gt: list[list[float]] | None
+    latency_s: float | None
+
+
+@dataclass
+class ReplayResult:
+    records: list[ReplayRecord]
+    diagnostics: dict[str, str]          # the node's last /diagnostics key-values ({} if none)
+    wall_s: float                        # whole replay, connection excluded
+    # The Fast DDS profiles file named when the replay's node was created (None: Fast DDS's
+    # defaults). Fast DDS applies it only if that was the process's first ROS node.
+    fastdds_profile: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"records": [asdict(r) for r in self.records], "diagnostics": self.diagnostics,
+                "wall_s": self.wall_s, "fastdds_profile": self.fastdds_profile}
+
+
+def _topic(namespace: str, name: str) -> str:
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return f"{ns}/{name}"
+
+
+def _scan_bag(bag_path: Path) -> tuple[list[tuple[int, str, bytes]], dict[int, np.ndarray]]:
+    """Cloud messages (log time ns, topic, raw CDR) in log order, and ground truth by stamp."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import Reader
+
+    from cegc_ros.data.bag import BagError
+    from msg_adapters.nav import time_to_ns
+    from msg_adapters.pose import pose_to_matrix
+
+    if not bag_path.exists():
+        raise BagError(f"bag {bag_path} does not exist")
+    clouds: list[tuple[int, str, bytes]] = []
+    gt: dict[int, np.ndarray] = {}
+    try:
+        with Reader(bag_path) as reader:
+            conns = [c for c in reader.connections
+                     if c.topic in (TOPIC_SOURCE, TOPIC_TARGET, TOPIC_GT)]
+            topics = {c.topic for c in conns}
+            if not {TOPIC_SOURCE, TOPIC_TARGET} <= topics:
+                raise BagError(f"bag {bag_path} lacks {TOPIC_SOURCE} and/or {TOPIC_TARGET} "
+                               f"(has {sorted(c.topic for c in reader.connections)})")
+            for conn, log_ns, raw in reader.messages(connections=conns):
+                raw = bytes(raw)
+                if conn.topic == TOPIC_GT:
+                    msg = deserialize_message(raw, PoseStamped)
+                    gt[time_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
+                else:
+                    clouds.append((int(log_ns), conn.topic, raw))
+    except BagError:
+        raise
+    except Exception as err:
+        raise BagError(f"cannot read bag {bag_path}: {type(err).__name__}: {err}") from err
+    return clouds, gt
+
+
+def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = False,
+               timeout: float = 10.0, connect_timeout: float = 30.0,
+               node_name: str = "register_node", node_namespace: str = "/",
+               source_topic: str | None = None, target_topic: str | None = None,
+               pose_topic: str | None = None, pair_timeout: float = 30.0,
+               progress: bool = False, fastdds_profile: str = "default") -> ReplayResult:
+    """Publish a pair bag into a running register_node and collect its poses.
+
+    Args:
+        bag_path: rosbag2 directory written by ``cegc-make-bag`` (sqlite3 or mcap).
+        rate: playback speed factor on the bag's log times (ignored with ``lockstep``).
+        lockstep: wait for the node's answer to each pair before publishing the next.
+        timeout: after the last pair, wait at most this long (s) for outstanding poses.
+        connect_timeout: wait at most this long (s) for the node's topics to match.
+        node_name, node_namespace: where the node runs (its topics are derived from them).
+        source_topic, target_topic, pose_topic: explicit topic names (override the above).
+        pair_timeout: with ``lockstep``, the longest wait (s) for the node's answer to one
+            pair (a pose or a counted rejection): past it, or as soon as the node's
+            subscription to the inputs is gone (the node died), ReplayError.
+        fastdds_profile: Fast DDS profiles file of the publishing node, as
+            :func:`cegc_ros.paths.fastdds_profile` takes it: ``"default"`` (the user's
+            FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped profile for huge clouds),
+            ``"none"`` or a path. Takes effect only if no ROS node was created in this process
+            before (Fast DDS reads its profiles once per process).
+
+    Returns:
+        A :class:`ReplayResult`, one record per pair (by source stamp) in bag order.
+
+    Raises:
+        cegc_ros.data.bag.BagError: unreadable bag or missing topics.
+        ReplayError: the node's topics never matched within ``connect_timeout``; with
+            ``lockstep``, the node went away or did not answer a pair within ``pair_timeout``.
+        FileNotFoundError: ``fastdds_profile`` names no file.
+    """
+    if not rate > 0:
+        raise ValueError(f"rate must be > 0, got {rate}")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from cegc_ros.paths import fastdds_profile as profile_env
+    from msg_adapters.nav import time_to_ns
+    from msg_adapters.point_cloud2_cdr import header_stamp_ns
+    from msg_adapters.pose import pose_to_matrix
+
+    clouds, gt = _scan_bag(Path(bag_path))
+    src_topic = source_topic or _topic(node_namespace, "source_cloud")
+    tgt_topic = target_topic or _topic(node_namespace, "target_cloud")
+    out_topic = pose_topic or _topic(node_namespace, f"{node_name}/pose")
+
+    context = rclpy.Context()                   # own context: callers may run rclpy too
+    rclpy.init(context=context)
+    lock = threading.Lock()
+    poses: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
+    diag: dict[str, str] = {}
+    answered = threading.Condition(lock)
+    status_name = f"{_topic(node_namespace, node_name)}: registration"  # the node's full name
+    node = executor = spinner = None
+    try:
+        with profile_env(fastdds_profile) as profile:   # read when the participant is made
+            node = rclpy.create_node("cegc_replay", context=context)
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = {TOPIC_SOURCE: node.create_publisher(PointCloud2, src_topic, qos),
+                TOPIC_TARGET: node.create_publisher(PointCloud2, tgt_topic, qos)}
+
+        def on_pose(msg: Any) -> None:
+            now = time.monotonic()
+            stamp = time_to_ns(msg.header.stamp)
+            with answered:
+                poses[stamp] = (pose_to_matrix(msg.pose), now)
+                answered.notify_all()
+
+        def on_diag(msg: Any) -> None:
+            for st in msg.status:
+                if st.name == status_name:
+                    with answered:
+                        diag.clear()
+                        diag.update({kv.key: kv.value for kv in st.values})
+                        answered.notify_all()
+
+        node.create_subscription(PoseStamped, out_topic, on_pose, 100)
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        spinner = threading.Thread(target=_spin, args=(executor,), name="cegc_replay_spin",
+                                   daemon=True)
+        spinner.start()
+
+        end = time.monotonic() + connect_timeout
+        while not (all(p.get_subscription_count() for p in pubs.values())
+                   and node.count_publishers(out_topic)):
+            if time.monotonic() > end:
+                raise ReplayError(f"no register_node answered within {connect_timeout} s "
+                                  f"(publishing {src_topic}, {tgt_topic}; listening {out_topic})")
+            time.sleep(0.05)
+        base: int | None = None    # the node's pairs_done before this replay (lockstep)
+        if lockstep:
+            with answered:
+                if answered.wait_for(lambda: "pairs_done" in diag, min(connect_timeout, 5.0)):
+                    base = int(diag["pairs_done"])
+
+        published: dict[int, float] = {}    # source stamp -> publish time of the later cloud
+        order: list[int] = []
+        pending: dict[int, set[str]] = {}   # stamp -> topics published so far
+        bar = _progress(len(clouds) // 2, progress)
+        t_start = time.monotonic()
+        log0 = clouds[0][0] if clouds else 0
+        try:
+            for log_ns, topic, raw in clouds:
+                stamp = header_stamp_ns(raw)
+                if not lockstep:
+                    delay = t_start + (log_ns - log0) / 1e9 / rate - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                if lockstep and pending.get(stamp) is None and order:
+                    _wait_answer(answered, poses, diag, order[-1],
+                                 None if base is None else base + len(order), pair_timeout,
+                                 pubs, len(order), len(clouds) // 2)
+                pubs[topic].publish(raw)
+                seen = pending.setdefault(stamp, set())
+                seen.add(topic)
+                if len(seen) == 2:
+                    published[stamp] = time.monotonic()
+                    order.append(stamp)
+                    bar.update(1)
+            if lockstep and order:
+                _wait_answer(answered, poses, diag, order[-1],
+                             None if base is None else base + len(order), pair_timeout,
+                             pubs, len(order), len(clouds) // 2)
+                if base is not None:    # diagnostics that count every pair of this replay
+                    with answered:
+                        answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
+                                          >= base + len(order), timeout)
+            if not lockstep:
+                with answered:
+                    answered.wait_for(lambda: all(s in poses for s in order), timeout)
+        finally:
+            bar.close()
+        wall = time.monotonic() - t_start
+        records = []
+        with lock:
+            for k, stamp in enumerate(order):
+                got = poses.get(stamp)
+                T_gt = gt.get(stamp)
+                records.append(ReplayRecord(
+                    index=k, stamp_ns=stamp,
+                    T_est=None if got is None else got[0].tolist(),
+                    T_gt=None if T_gt is None else T_gt.tolist(),
+                    latency_s=None if got is None else got[1] - published[stamp]))
+            last_diag = dict(diag)
+        return ReplayResult(records, last_diag, wall, profile)
+    finally:
+        # Always, also after an error: a spin thread still inside rcl when the interpreter
+        # exits aborts the process ("terminate called without an active exception").
+        if executor is not None:
+            executor.shutdown(timeout_sec=2.0)
+        if spinner is not None:
+            spinner.join(5.0)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def _spin(executor: Any) -> None:
+    """The replay's spin thread: ends quietly when the executor or its context shuts down."""
+    from rclpy.executors import ExternalShutdownException
+
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+
+
+#: How often a lockstep wait checks that the node is still there (s).
+ALIVE_CHECK_S = 0.25
+
+
+def _wait_answer(cond: threading.Condition, poses: dict[int, Any], diag: dict[str, str],
+                 stamp: int, done_target: int | None, limit: float, pubs: dict[str, Any],
+                 n_sent: int, n_total: int) -> None:
+    """Wait until the node answered pair ``stamp``: its pose, or pairs_done >= done_target.
+    ReplayError when no node subscribes to the inputs any more, or after ``limit`` s."""
+    def answered() -> bool:
+        return stamp in poses or (done_target is not None
+                                  and int(diag.get("pairs_done", "-1")) >= done_target)
+    end = time.monotonic() + limit
+    with cond:
+        while not answered():
+            if not all(p.get_subscription_count() for p in pubs.values()):
+                raise ReplayError(f"register_node went away (nothing subscribes to "
+                                  f"{', '.join(p.topic_name for p in pubs.values())} any more) "
+                                  f"after {n_sent} of {n_total} pairs were sent, "
+                                  f"{len(poses)} answered with a pose")
+            left = end - time.monotonic()
+            if left <= 0:
+                raise ReplayError(f"register_node did not answer pair {n_sent} of {n_total} "
+                                  f"within --wait {limit:g} s ({len(poses)} poses so far)")
+            cond.wait(min(ALIVE_CHECK_S, left))
+
+
+class _NoBar:
+    def update(self, _n: int) -> None: ...
+    def close(self) -> None: ...
+
+
+def _progress(total: int, enabled: bool) -> Any:
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+    return tqdm(total=total, unit="pair", desc="replay")
+
+
+def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) -> None:
+    """Write records as JSON (with ``meta`` and the node's diagnostics) or CSV (one row/pair)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".csv":
+        with path.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["index", "stamp_ns", "latency_s"] + [f"est_{i}{j}" for i in range(4)
+                                                              for j in range(4)]
+                       + [f"gt_{i}{j}" for i in range(4) for j in range(4)])
+            for r in result.records:
+                est = np.asarray(r.T_est).ravel().tolist() if r.T_est else [""] * 16
+                gt = np.asarray(r.T_gt).ravel().tolist() if r.T_gt else [""] * 16
+                w.writerow([r.index, r.stamp_ns, "" if r.latency_s is None else r.latency_s]
+                           + est + gt)
+    else:
+        path.write_text(json.dumps({"meta": meta, **result.to_json()}, indent=1))
+
+
+def summary(result: ReplayResult) -> dict[str, Any]:
+    """Counts, latency percentiles and median errors (when ground truth is present)."""
+    recs = result.records
+    with_pose = [r for r in recs if r.T_est is not None]
+    out: dict[str, Any] = {"pairs": len(recs), "poses": len(with_pose),
+                           "wall_s": round(result.wall_s, 3)}
+    lat = [r.latency_s for r in with_pose if r.latency_s is not None]
+    if lat:
+        p50, p90 = np.percentile(lat, [50, 90])
+        out.update(latency_p50_ms=round(p50 * 1e3, 1), latency_p90_ms=round(p90 * 1e3, 1))
+    both = [r for r in with_pose if r.T_gt is not None]
+    if both:
+        from cegc_ros.metrics import pair_errors
+        err = pair_errors(np.array([r.T_gt for r in both]), np.array([r.T_est for r in both]))
+        out.update(median_rot_error_deg=round(float(np.median(err.rot_error_deg)), 3),
+                   median_trans_error=round(float(np.median(err.trans_error)), 4))
+    return out

@@ -1,0 +1,120 @@
+"""Input hygiene: no-return zeros, non-finite points, range limits and flying pixels.
+
+Clouds with the defects real sensors produce (an organized cloud with NaN holes and (0, 0, 0)
+no-returns, depth-edge flying pixels out to 10 m) must give the pose, the grid and the counts
+of the clean cloud.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cegc_ros.bounding import EXTENT_TRIM, Dropped, bound_pair, clean_points, extent, robust_extent
+from cegc_ros.config import PreprocessConfig
+from cegc_ros.data.corruption import add_flying_pixels
+from cegc_ros.metrics import rotation_error_deg
+
+
+def _room(n: int = 20000, seed: int = 0) -> np.ndarray:
+    """A 4 x 3 x 2.5 m room seen from a sensor at the origin (inside the room)."""
+    rng = np.random.default_rng(seed)
+    k = n // 5
+    lo = np.array([-1.0, -1.5, -1.2])
+    hi = lo + [4.0, 3.0, 2.5]
+    faces = []
+    for axis, value in ((2, lo[2]), (0, hi[0]), (1, lo[1]), (1, hi[1]), (0, lo[0])):
+        p = rng.uniform(lo, hi, (k, 3))
+        p[:, axis] = value
+        faces.append(p)
+    return np.concatenate(faces)
+
+
+def test_clean_points_drops_and_counts_each_defect():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-5, 5, (1000, 3)).astype(np.float32)
+    pts[:100] = 0.0                                   # no returns
+    pts[100:130, 1] = np.nan
+    pts[130:140, 2] = np.inf
+    r = np.linalg.norm(pts.astype(np.float64), axis=1)
+    fin = np.isfinite(r)
+    far = fin & (r > 7.0)
+    near = fin & (r < 1.0) & (r > 0)
+    out, d = clean_points(pts, min_range=1.0, max_range=7.0)
+    assert d == Dropped(non_finite=40, no_return=100, out_of_range=int(far.sum() + near.sum()))
+    assert len(out) == 1000 - d.total() and out.dtype == np.float32
+    assert np.isfinite(out).all() and (np.linalg.norm(out, axis=1) >= 1.0).all()
+    same, none = clean_points(pts[150:][fin[150:]])   # limits off: only defects go
+    assert none == Dropped() and len(same) == fin[150:].sum()
+
+
+def test_robust_extent_ignores_a_few_per_cent_of_flying_pixels():
+    room = _room()
+    flying = add_flying_pixels(room, 0.02, np.random.default_rng(1), near=3.0, far=10.0)
+    assert extent(flying) > 1.8 * extent(room)        # the bounding box follows them out
+    assert robust_extent(flying) == pytest.approx(robust_extent(room), rel=0.1)
+    assert robust_extent(room, trim=0) == extent(room)
+    assert 0 < EXTENT_TRIM < 0.1
+
+
+def test_flying_pixels_move_points_along_their_rays_only():
+    room = _room(2000)
+    out = add_flying_pixels(room, 0.05, np.random.default_rng(2))
+    moved = np.flatnonzero(np.abs(out - room).max(1) > 0)
+    assert len(moved) == 100
+    u_in = room[moved] / np.linalg.norm(room[moved], axis=1, keepdims=True)
+    u_out = out[moved] / np.linalg.norm(out[moved], axis=1, keepdims=True)
+    assert np.abs(u_in - u_out).max() < 1e-9                              # same ray
+    r = np.linalg.norm(out[moved], axis=1)
+    assert (r >= 3.0).all() and (r <= 12.0).all()
+    with pytest.raises(ValueError, match="share"):
+        add_flying_pixels(room, 1.5, np.random.default_rng(0))
+
+
+def _organized_with_defects(cloud: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
+    """An organized-cloud-like array: cloud rows, then NaN holes and (0, 0, 0) no-returns in
+    between (as a depth image's invalid pixels), 2% of the valid points flying out to 5-10 m."""
+    flying = add_flying_pixels(cloud, 0.02, rng, near=5.0, far=10.0)
+    n_nan, n_zero = len(cloud) // 3, len(cloud) // 2
+    rows = np.concatenate([flying, np.full((n_nan, 3), np.nan), np.zeros((n_zero, 3))])
+    return rows[rng.permutation(len(rows))], n_nan, n_zero
+
+
+def test_the_grid_and_the_counts_of_a_defective_pair_are_the_clean_pairs():
+    rng = np.random.default_rng(3)
+    src, tgt = _room(20000, 4), _room(20000, 5)
+    clean = bound_pair(src, tgt, PreprocessConfig(), 16)
+    (s_bad, nan_s, zero_s), (t_bad, nan_t, zero_t) = (_organized_with_defects(c, rng) for c in (src, tgt))
+    bad = bound_pair(s_bad, t_bad, PreprocessConfig(), 16)
+    assert bad.voxel == pytest.approx(clean.voxel, rel=0.1)
+    flyers = round(0.02 * len(src))
+    for d, n_nan, n_zero in zip(bad.dropped, (nan_s, nan_t), (zero_s, zero_t)):
+        assert (d.non_finite, d.no_return, d.out_of_range) == (n_nan, n_zero, 0)
+        assert 0.9 * flyers <= d.isolated <= flyers + 0.002 * len(src)   # the flying pixels
+    assert clean.dropped[0].isolated <= 0.002 * len(src)                  # a clean room loses ~none
+    assert bad.input_points == (len(src), len(tgt))
+    # max_range takes the flying pixels out as well (the room is within 3.7 m of the sensor).
+    ranged = bound_pair(s_bad, t_bad, PreprocessConfig(max_range=4.5), 16)
+    assert ranged.dropped[0].out_of_range == round(0.02 * len(src))
+    assert ranged.input_points[0] == len(src) - round(0.02 * len(src))
+
+
+def test_a_pair_with_sensor_defects_registers_as_the_clean_pair():
+    from cegc_ros.data.protocols import make_pair
+    from cegc_ros.engine import Registrar
+
+    p = make_pair("fragments", "test", 3)            # two Kinect-like fragments, 39% overlap
+    reg = Registrar.from_checkpoint(device="cpu")
+    clean = reg.register(p.source, p.target)
+    rng = np.random.default_rng(6)
+    (s_bad, nan_s, zero_s), (t_bad, _, _) = (_organized_with_defects(c, rng) for c in (p.source, p.target))
+    bad = reg.register(s_bad, t_bad)
+    d = bad.dropped[0]
+    assert (d.non_finite, d.no_return, d.out_of_range) == (nan_s, zero_s, 0)
+    assert 0.9 * round(0.02 * len(p.source)) <= d.isolated                # the flying pixels
+    assert bad.voxel_size == pytest.approx(clean.voxel_size, rel=0.1)
+    G = p.T_target_source
+    for r in (clean, bad):
+        assert r.valid
+        assert rotation_error_deg(G[:3, :3], r.T_target_source[:3, :3]) < 2.0
+        assert np.linalg.norm(G[:3, 3] - r.T_target_source[:3, 3]) < 0.1
