@@ -128,6 +128,12 @@ class RegisterLifecycleNode(RegistrationNodeMixin, LifecycleNode):
         for sub in getattr(self, "inputs", []):
             self.destroy_subscription(sub)
         self.inputs = []
+        for control in getattr(self, "controls", []):
+            if hasattr(control, "srv_type"):
+                self.destroy_service(control)
+            else:
+                self.destroy_subscription(control)
+        self.controls = []
         if self.worker is not None and not self.worker.stop(10.0):
             self.get_logger().warning("the registration in progress did not finish in time")
         self.worker = None

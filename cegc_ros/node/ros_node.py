@@ -164,6 +164,61 @@ class RegistrationNodeMixin:
         self.inputs = [self.create_subscription(
             PointCloud2, topic, lambda data, side=side: self.on_serialized_cloud(side, data),
             self.input_qos, raw=True) for side, topic in self.mode.inputs.items()]
+        self.create_controls()
+
+    def create_controls(self) -> None:
+        """``~/reset`` (std_srvs/srv/Trigger, both modes) and, in sequential mode, the
+        ``initialpose`` input (geometry_msgs/PoseWithCovarianceStamped, relative: RViz's
+        "2D Pose Estimate" publishes /initialpose). They live and go with the inputs."""
+        from std_srvs.srv import Trigger
+
+        self.controls: list[Any] = [self.create_service(Trigger, "~/reset", self.on_reset)]
+        if self.mode.name == "sequential":
+            self.controls.append(self.create_subscription(
+                PoseWithCovarianceStamped, "initialpose", self.on_initial_pose, 10))
+
+    def on_reset(self, request: Any, response: Any) -> Any:
+        """Pairs mode: forget the clouds waiting for a partner. Sequential mode: forget the
+        odometry, its keyframes and path (the next cloud starts a new frame at the identity).
+        Both: the job waiting for the worker is dropped."""
+        waiting = self.worker.clear_pending()
+        if self.mode.name == "pairs":
+            self.mode.reset()                       # executor-side state
+            what = "pairing state cleared"
+        else:
+            self.worker.defer(self.mode.reset)      # worker-side state
+            what = "odometry, keyframes and path cleared; the next cloud starts a new frame"
+        self.stats.add("resets")
+        response.success = True
+        response.message = (f"{self.mode.name} mode reset: {what}"
+                            + ("; the waiting cloud was dropped" if waiting else ""))
+        self.get_logger().info(response.message)
+        return response
+
+    def on_initial_pose(self, msg: Any) -> None:
+        """Sequential mode: the next cloud starts a new odometry frame at this pose (the pose
+        of the cloud in ``output.odom_frame``); a pose in another frame is counted, logged and
+        ignored."""
+        from msg_adapters.pose import pose_to_matrix
+
+        odom = self.cfg["output"].odom_frame
+        if msg.header.frame_id not in (odom, ""):
+            self.stats.add("initial_poses_ignored")
+            self._log("initial_pose", f"initial pose in frame {msg.header.frame_id!r} ignored: "
+                      f"it must be in output.odom_frame {odom!r}")
+            return
+        try:
+            T = pose_to_matrix(msg.pose.pose)
+            C = np.asarray(msg.pose.covariance, np.float64).reshape(6, 6)
+        except ValueError as err:
+            self.stats.add("initial_poses_ignored")
+            self._log("initial_pose", f"initial pose ignored: {err}")
+            return
+        self.worker.clear_pending()
+        self.worker.defer(lambda: self.mode.reset(T, C))
+        self.stats.add("initial_poses")
+        self.get_logger().info(f"initial pose received: the next cloud starts a new odometry "
+                               f"frame at x {T[0, 3]:.3f} y {T[1, 3]:.3f} z {T[2, 3]:.3f}")
 
     def start_worker(self) -> None:
         self.worker = self.mode.make_worker(self)

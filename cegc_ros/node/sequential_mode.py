@@ -73,9 +73,10 @@ class SequentialMode:
     def on_result(self, job: Job, result: Any) -> None:
         """The odometry has already taken the cloud."""
 
-    def reset(self) -> None:
-        """Forget the odometry: the next cloud starts a new odometry frame."""
-        self.odometry.reset()
+    def reset(self, initial_pose: Any = None, initial_covariance: Any = None) -> None:
+        """Forget the odometry (keyframes, path, the last stamp): the next cloud starts a new
+        odometry frame, at ``initial_pose`` (4, 4) T_odom_cloud when given. Worker thread."""
+        self.odometry.reset(initial_pose, initial_covariance)
         self._poses.clear()
 
     def create_outputs(self, node: Any) -> None:
@@ -101,6 +102,8 @@ class SequentialMode:
                   "odometry_p50_ms": f"{percentiles_ms(list(self._frame_times), (50,))[0]:.1f}"}
         for reason in SEQUENTIAL_REJECT_REASONS:
             values[f"rejected.{reason}"] = stats.count(f"rejected.{reason}")
+        for key in ("initial_poses", "initial_poses_ignored"):
+            values[key] = stats.count(key)
         return {k: str(v) for k, v in values.items()}
 
     # -- outputs (worker thread) ----------------------------------------------------------

@@ -39,6 +39,12 @@ class Mailbox:
             item, self._item = self._item, None
             return item
 
+    def take(self) -> Any:
+        """Empty the slot without waiting; returns the item that was waiting, if any."""
+        with self._cond:
+            item, self._item = self._item, None
+            return item
+
     def close(self) -> Any:
         """Wake the worker for good; returns the item that was still waiting, if any."""
         with self._cond:

@@ -24,6 +24,10 @@ from cegc_ros.node.stats import NodeStats, Rejected
 from cegc_ros.node.support import Mailbox, ThrottledLog, thin
 
 
+#: How often an idle worker looks for deferred work (a reset, an initial pose), in seconds.
+IDLE_POLL_S = 0.1
+
+
 class RegistrationWorker:
     """Runs jobs on the engine, one at a time, on a thread of its own.
 
@@ -51,6 +55,8 @@ class RegistrationWorker:
         self._on_result = on_result
         self._info = info
         self._mailbox = Mailbox()
+        self._deferred: list[Callable[[], None]] = []   # run by the worker thread, between jobs
+        self._deferred_lock = threading.Lock()
         self._engine_dirty = False
         self._last_frames: dict[str, str] = {}
         self._thread = threading.Thread(target=self._run, name="cegc_worker", daemon=True)
@@ -65,6 +71,22 @@ class RegistrationWorker:
             self.stats.add("pairs_dropped")
             self._log("dropped", "registration is slower than the input: the waiting pair "
                       "was replaced by a newer one")
+
+    def clear_pending(self) -> bool:
+        """Drop the job waiting in the mailbox, if any (``~/reset``); True if one was."""
+        return self._mailbox.take() is not None
+
+    def defer(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` in the worker thread after the job in progress, before the next one
+        (within IDLE_POLL_S when idle): state the worker owns changes only there."""
+        with self._deferred_lock:
+            self._deferred.append(fn)
+
+    def _run_deferred(self) -> None:
+        with self._deferred_lock:
+            todo, self._deferred = self._deferred, []
+        for fn in todo:
+            fn()
 
     def engine_settings_changed(self) -> None:
         """preprocess.* / engine.* changed: the engine gets them with the next job."""
@@ -81,9 +103,12 @@ class RegistrationWorker:
     # -- the thread -----------------------------------------------------------------------
     def _run(self) -> None:
         while True:
-            job = self._mailbox.get()
+            job = self._mailbox.get(IDLE_POLL_S)
+            self._run_deferred()
             if job is None:
-                return
+                if self._mailbox.closed:
+                    return
+                continue
             self.stats.busy = True
             try:
                 self.process(job)

@@ -150,8 +150,17 @@ class KeyframeOdometry:
     # State
     # ----------------------------------------------------------------------------------------
 
-    def reset(self) -> None:
-        """Forget everything: the next cloud starts a new odometry frame."""
+    def reset(self, initial_pose: np.ndarray | None = None,
+              initial_covariance: np.ndarray | None = None) -> None:
+        """Forget everything: the next cloud starts a new odometry frame, at ``initial_pose``
+        ((4, 4) T_odom_cloud, e.g. from a localization or RViz's initial pose) with
+        ``initial_covariance`` ((6, 6)), or at the identity with zero covariance."""
+        T0 = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64).copy()
+        C0 = (np.zeros((6, 6)) if initial_covariance is None
+              else np.asarray(initial_covariance, np.float64).copy())
+        if T0.shape != (4, 4) or C0.shape != (6, 6) or not (np.isfinite(T0).all() and np.isfinite(C0).all()):
+            raise ValueError("initial pose must be a finite (4, 4) and its covariance a finite (6, 6)")
+        self._initial = (T0, C0)
         self.stats = OdometryStats()
         self.keyframe: Keyframe | None = None
         self._last: Keyframe | None = None                               # last accepted cloud
@@ -216,7 +225,7 @@ class KeyframeOdometry:
         self.stats.frames += 1
 
         if self.keyframe is None:
-            T0, cov0 = np.eye(4), np.zeros((6, 6))
+            T0, cov0 = (a.copy() for a in self._initial)
             self._advance(Keyframe(stamp_ns, T0, cov0, points, prepared))
             self._take_keyframe()
             timings["total"] = time.perf_counter() - t0
