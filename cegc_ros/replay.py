@@ -1,11 +1,12 @@
-"""Replaying a pair bag into a running register_node and recording the poses it returns: the
-part of ``cegc-replay`` (cegc_ros/tools/replay.py) that ``cegc-eval --through-node``
+"""Replaying a bag into a running register_node and recording the poses it returns: the part
+of ``cegc-replay`` (cegc_ros/tools/replay.py) that ``cegc-eval --through-node``
 (cegc_ros/evaluation/through_node.py) reuses, so that evaluation does not import a tool.
 
-:func:`replay_bag` publishes the bag's ``/cegc/source`` and ``/cegc/target`` messages as stored
-(serialized CDR, no decoding) onto the node's inputs with RELIABLE QoS, paced by the bag's
-stamps or in lockstep, and matches every ``~/pose`` to its pair by header stamp;
-:func:`write_records` and :func:`summary` report the result.
+:func:`replay_bag` publishes the chosen PointCloud2 messages as stored (serialized CDR, no
+decoding) with RELIABLE QoS, paced by the bag's log times or, for a pair bag, in lockstep, and
+matches every ``~/pose`` to its pair or cloud by header stamp (:func:`plan_topics`: a pair
+bag's two topics onto the node's inputs; a sequence bag's or any recording's cloud topic onto
+``cloud``; ``--remap FROM:=TO`` chooses); :func:`write_records` and :func:`summary` report.
 """
 
 from __future__ import annotations
@@ -65,8 +66,67 @@ def _topic(namespace: str, name: str) -> str:
     return f"{ns}/{name}"
 
 
-def _scan_bag(bag_path: Path) -> tuple[list[tuple[int, str, bytes]], dict[int, np.ndarray]]:
-    """Cloud messages (log time ns, topic, raw CDR) in log order, and ground truth by stamp."""
+TOPIC_CLOUD = "/cegc/cloud"          # the sequence-bag layout of cegc_ros.data.bag
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+
+@dataclass
+class TopicPlan:
+    """What a replay publishes: bag topic -> topic to publish on, and whether those are the two
+    inputs of a pairs-mode node (``pairs``, answered per pair) or one cloud stream."""
+
+    routes: dict[str, str]
+    pairs: bool
+
+
+def parse_remap(text: str) -> tuple[str, str]:
+    """``FROM:=TO`` (as ``ros2 bag play --remap`` takes it) -> (FROM, TO); ValueError else."""
+    src, sep, dst = text.partition(":=")
+    if not sep or not src.strip() or not dst.strip():
+        raise ValueError(f"--remap {text!r}: expected FROM:=TO, e.g. /os_cloud_node/points:=cloud")
+    return src.strip(), dst.strip()
+
+
+def plan_topics(connections: dict[str, str], remaps: list[tuple[str, str]], namespace: str,
+                source_topic: str, target_topic: str) -> TopicPlan:
+    """Choose what to publish from a bag's ``connections`` (topic -> message type).
+
+    With ``remaps`` (FROM, TO): exactly those topics, each a PointCloud2, published on TO (a
+    relative TO is resolved in the node's namespace, as a node's inputs are). Without: a pair
+    bag's /cegc/source and /cegc/target onto the node's two inputs; a sequence bag's
+    /cegc/cloud, or a bag's one PointCloud2 topic, onto ``<namespace>/cloud`` (sequential
+    mode). Every other topic is skipped unread (custom message types need no definitions).
+    """
+    def resolve(name: str) -> str:
+        return name if name.startswith("/") else _topic(namespace, name)
+    clouds = sorted(t for t, kind in connections.items() if kind == POINTCLOUD2)
+    if remaps:
+        routes = {}
+        for src, dst in remaps:
+            if src not in connections:
+                raise ReplayError(f"--remap {src}:={dst}: the bag has no topic {src} "
+                                  f"(PointCloud2 topics: {', '.join(clouds) or 'none'})")
+            if connections[src] != POINTCLOUD2:
+                raise ReplayError(f"--remap {src}:={dst}: {src} is {connections[src]}, only "
+                                  f"PointCloud2 topics are replayed")
+            routes[src] = resolve(dst)
+        return TopicPlan(routes, set(routes.values()) == {source_topic, target_topic})
+    if {TOPIC_SOURCE, TOPIC_TARGET} <= set(connections):
+        return TopicPlan({TOPIC_SOURCE: source_topic, TOPIC_TARGET: target_topic}, True)
+    if TOPIC_CLOUD in connections:
+        return TopicPlan({TOPIC_CLOUD: resolve("cloud")}, False)
+    if len(clouds) == 1:
+        return TopicPlan({clouds[0]: resolve("cloud")}, False)
+    raise ReplayError(f"the bag has {len(clouds)} PointCloud2 topics"
+                      + (f" ({', '.join(clouds)}): choose with --remap FROM:=TO" if clouds
+                         else f" (its topics: {', '.join(sorted(connections)) or 'none'})"))
+
+
+def _scan_bag(bag_path: Path, remaps: list[tuple[str, str]], namespace: str, source_topic: str,
+              target_topic: str, start_offset: float = 0.0
+              ) -> tuple[TopicPlan, list[tuple[int, str, bytes]], dict[int, np.ndarray]]:
+    """The plan, the chosen cloud messages (log time ns, bag topic, raw CDR) in log order from
+    ``start_offset`` s after the bag's first message on, and a pair bag's ground truth by stamp."""
     from geometry_msgs.msg import PoseStamped
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
@@ -81,24 +141,25 @@ def _scan_bag(bag_path: Path) -> tuple[list[tuple[int, str, bytes]], dict[int, n
     gt: dict[int, np.ndarray] = {}
     try:
         with Reader(bag_path) as reader:
-            conns = [c for c in reader.connections
-                     if c.topic in (TOPIC_SOURCE, TOPIC_TARGET, TOPIC_GT)]
-            topics = {c.topic for c in conns}
-            if not {TOPIC_SOURCE, TOPIC_TARGET} <= topics:
-                raise BagError(f"bag {bag_path} lacks {TOPIC_SOURCE} and/or {TOPIC_TARGET} "
-                               f"(has {sorted(c.topic for c in reader.connections)})")
+            plan = plan_topics({c.topic: c.msgtype for c in reader.connections}, remaps,
+                               namespace, source_topic, target_topic)
+            wanted = set(plan.routes) | ({TOPIC_GT} if plan.pairs else set())
+            conns = [c for c in reader.connections if c.topic in wanted]
+            first = reader.start_time
             for conn, log_ns, raw in reader.messages(connections=conns):
+                if log_ns - first < start_offset * 1e9:
+                    continue
                 raw = bytes(raw)
                 if conn.topic == TOPIC_GT:
                     msg = deserialize_message(raw, PoseStamped)
                     gt[time_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
                 else:
                     clouds.append((int(log_ns), conn.topic, raw))
-    except BagError:
+    except (BagError, ReplayError):
         raise
     except Exception as err:
         raise BagError(f"cannot read bag {bag_path}: {type(err).__name__}: {err}") from err
-    return clouds, gt
+    return plan, clouds, gt
 
 
 def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = False,
@@ -106,11 +167,16 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                node_name: str = "register_node", node_namespace: str = "/",
                source_topic: str | None = None, target_topic: str | None = None,
                pose_topic: str | None = None, pair_timeout: float = 30.0,
-               progress: bool = False, fastdds_profile: str = "default") -> ReplayResult:
-    """Publish a pair bag into a running register_node and collect its poses.
+               progress: bool = False, fastdds_profile: str = "default",
+               remaps: list[tuple[str, str]] | None = None,
+               start_offset: float = 0.0) -> ReplayResult:
+    """Publish a bag's clouds into a running register_node and collect its poses.
 
     Args:
-        bag_path: rosbag2 directory written by ``cegc-make-bag`` (sqlite3 or mcap).
+        bag_path: a rosbag2 directory (sqlite3 or mcap): a pair bag of ``cegc-make-bag``, a
+            sequence bag, or any recording (:func:`plan_topics` says what is published).
+        remaps: (FROM, TO) topic remaps, as ``ros2 bag play --remap``; they choose the topics.
+        start_offset: skip the bag's first ``start_offset`` seconds (log time).
         rate: playback speed factor on the bag's log times (ignored with ``lockstep``).
         lockstep: wait for the node's answer to each pair before publishing the next.
         timeout: after the last pair, wait at most this long (s) for outstanding poses.
@@ -150,10 +216,17 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     from msg_adapters.point_cloud2_cdr import header_stamp_ns
     from msg_adapters.pose import pose_to_matrix
 
-    clouds, gt = _scan_bag(Path(bag_path))
+    if start_offset < 0:
+        raise ValueError(f"start offset must be >= 0, got {start_offset}")
     src_topic = source_topic or _topic(node_namespace, "source_cloud")
     tgt_topic = target_topic or _topic(node_namespace, "target_cloud")
     out_topic = pose_topic or _topic(node_namespace, f"{node_name}/pose")
+    plan, clouds, gt = _scan_bag(Path(bag_path), list(remaps or []), node_namespace, src_topic,
+                                 tgt_topic, start_offset)
+    if lockstep and not plan.pairs:
+        raise ReplayError("--lockstep waits for a pose per pair: it needs the node's two inputs "
+                          f"(this replay publishes one stream: {', '.join(plan.routes.values())})")
+    per_item = 2 if plan.pairs else 1        # messages that make one answerable item
 
     context = rclpy.Context()                   # own context: callers may run rclpy too
     rclpy.init(context=context)
@@ -167,8 +240,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         with profile_env(fastdds_profile) as profile:   # read when the participant is made
             node = rclpy.create_node("cegc_replay", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        pubs = {TOPIC_SOURCE: node.create_publisher(PointCloud2, src_topic, qos),
-                TOPIC_TARGET: node.create_publisher(PointCloud2, tgt_topic, qos)}
+        pubs = {bag_topic: node.create_publisher(PointCloud2, out, qos)
+                for bag_topic, out in plan.routes.items()}
 
         def on_pose(msg: Any) -> None:
             now = time.monotonic()
@@ -209,7 +282,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         published: dict[int, float] = {}    # source stamp -> publish time of the later cloud
         order: list[int] = []
         pending: dict[int, set[str]] = {}   # stamp -> topics published so far
-        bar = _progress(len(clouds) // 2, progress)
+        bar = _progress(len(clouds) // per_item, progress)
         t_start = time.monotonic()
         log0 = clouds[0][0] if clouds else 0
         try:
@@ -222,18 +295,18 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                 if lockstep and pending.get(stamp) is None and order:
                     _wait_answer(answered, poses, diag, order[-1],
                                  None if base is None else base + len(order), pair_timeout,
-                                 pubs, len(order), len(clouds) // 2)
+                                 pubs, len(order), len(clouds) // per_item)
                 pubs[topic].publish(raw)
                 seen = pending.setdefault(stamp, set())
                 seen.add(topic)
-                if len(seen) == 2:
+                if len(seen) == per_item:
                     published[stamp] = time.monotonic()
                     order.append(stamp)
                     bar.update(1)
             if lockstep and order:
                 _wait_answer(answered, poses, diag, order[-1],
                              None if base is None else base + len(order), pair_timeout,
-                             pubs, len(order), len(clouds) // 2)
+                             pubs, len(order), len(clouds) // per_item)
                 if base is not None:    # diagnostics that count every pair of this replay
                     with answered:
                         answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))

@@ -7,6 +7,7 @@ import threading
 import time
 
 import pytest
+import ros_helpers as rh
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -96,3 +97,106 @@ def test_a_node_that_never_answers_ends_it_after_wait(bag, capsys):
     assert code == 1 and out == ""
     assert err == ["cegc-replay: register_node did not answer pair 1 of 3 within --wait 1.5 s "
                    "(0 poses so far)"]
+
+
+# --- any rosbag2: topic choice, remaps, skipped topics, start offset ----------------------------
+
+CUSTOM_MSG = "float64 temperature\nstring note\n"
+
+
+def _recording(path, storage: str = "sqlite3", clouds=("/os_cloud_node/points",), n: int = 4):
+    """A sensor recording as drivers write it: cloud topics, an IMU topic and a custom message
+    type (whose definition a replaying machine does not have), 0.1 s apart."""
+    import numpy as np
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_types_from_msg
+
+    from cegc_ros.data.bag import _header, _typestore, xyz_to_pointcloud2
+
+    ts = _typestore()
+    ts.register(get_types_from_msg(CUSTOM_MSG, "vendor_msgs/msg/Status"))
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        cc = {t: w.add_connection(t, "sensor_msgs/msg/PointCloud2", typestore=ts) for t in clouds}
+        imu = w.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        status = w.add_connection("/vendor/status", "vendor_msgs/msg/Status", typestore=ts)
+        for k in range(n):
+            t = (50 + k) * 10**8
+            for topic, conn in cc.items():
+                xyz = np.random.default_rng(k).uniform(-5, 5, (300, 3))
+                w.write(conn, t, ts.serialize_cdr(xyz_to_pointcloud2(ts, xyz, _header(ts, t, "os")),
+                                                  "sensor_msgs/msg/PointCloud2"))
+            w.write(imu, t, ts.serialize_cdr(ts.types["sensor_msgs/msg/Imu"](
+                header=_header(ts, t, "imu"), orientation=ts.types["geometry_msgs/msg/Quaternion"](
+                    x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.zeros(9),
+                angular_velocity=ts.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=ts.types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=9.8),
+                linear_acceleration_covariance=np.zeros(9)), "sensor_msgs/msg/Imu"))
+            w.write(status, t, ts.serialize_cdr(ts.types["vendor_msgs/msg/Status"](
+                temperature=40.0, note="ok"), "vendor_msgs/msg/Status"))
+    return path
+
+
+class CloudRecorder:
+    """Records the stamps of the clouds arriving on one topic; advertises the pose topic."""
+
+    def __init__(self, namespace: str, topic: str) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("register_node", namespace=namespace, context=self.context)
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        self.stamps: list[int] = []
+        self.node.create_subscription(PointCloud2, topic, lambda m: self.stamps.append(rh.stamp_of(m)), qos)
+        self.node.create_publisher(PoseStamped, f"{namespace}/register_node/pose", 10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(5.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_sensor_recording_plays_its_cloud_topic_onto_cloud_and_skips_the_rest(tmp_path, capsys, storage):
+    bag = _recording(tmp_path / "rec", storage)
+    rec = CloudRecorder("/anybag", "/anybag/cloud")
+    try:
+        code, out, err, _ = _replay([str(bag), "--node-namespace", "/anybag", "--timeout", "0.5",
+                                     "--rate", "4"], capsys)
+    finally:
+        rec.close()
+    assert code == 0, err
+    assert rec.stamps == [(50 + k) * 10**8 for k in range(4)]     # IMU and vendor status skipped
+    assert '"pairs": 4' in out
+
+
+def test_remap_chooses_the_topic_and_where_it_goes_and_start_offset_skips(tmp_path, capsys):
+    bag = _recording(tmp_path / "rec2", clouds=("/front/points", "/rear/points"))
+    code, _, err, _ = _replay([str(bag), "--node-namespace", "/remap"], capsys)
+    assert code == 1 and err == ["cegc-replay: the bag has 2 PointCloud2 topics (/front/points, "
+                                 "/rear/points): choose with --remap FROM:=TO"]
+    code, _, err, _ = _replay([str(bag), "--remap", "/imu:=cloud"], capsys)
+    assert code == 1 and err == ["cegc-replay: --remap /imu:=cloud: /imu is sensor_msgs/msg/Imu, "
+                                 "only PointCloud2 topics are replayed"]
+    rec = CloudRecorder("/remap", "/remap/lidar")
+    try:
+        code, _, err, _ = _replay([str(bag), "--node-namespace", "/remap", "--remap",
+                                   "/rear/points:=lidar", "--start-offset", "0.15",
+                                   "--timeout", "0.5", "--rate", "4"], capsys)
+    finally:
+        rec.close()
+    assert code == 0, err
+    assert rec.stamps == [52 * 10**8, 53 * 10**8]                # 0.2 and 0.3 s in; the rear only
+    with pytest.raises(SystemExit) as exc:
+        _replay([str(bag), "--remap", "no-separator"], capsys)
+    assert exc.value.code == 2

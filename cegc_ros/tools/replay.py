@@ -1,11 +1,19 @@
-"""cegc-replay: play a pair bag into a running register_node and record the poses it returns.
+"""cegc-replay: play a bag into a running register_node and record the poses it returns.
 
     cegc-replay BAG [--rate R] [--lockstep] [--out FILE.json|FILE.csv] [--timeout S]
                     [--node-name register_node] [--node-namespace /]
                     [--source-topic T] [--target-topic T] [--pose-topic T]
+                    [--remap FROM:=TO ...] [--start-offset S]
                     [--wait S] [--fastdds-profile default|none|PATH]
 
-The bag's ``/cegc/source`` and ``/cegc/target`` messages are published as they are stored
+Any rosbag2 (sqlite3 or mcap) plays, as ``ros2 bag play`` would play it: ``--remap FROM:=TO``
+(repeatable) chooses the PointCloud2 topics and where they go; without it, a pair bag's two
+topics go to the node's inputs (below) and a sequence bag's ``/cegc/cloud``, or a recording's
+one PointCloud2 topic, to ``<namespace>/cloud`` (sequential mode). Other topics (IMU, packets,
+tf_static, custom message types) are skipped without reading them. ``--start-offset S`` skips
+the bag's first S seconds.
+
+A pair bag's ``/cegc/source`` and ``/cegc/target`` messages are published as they are stored
 (serialized CDR, no decoding) onto the node's ``source_cloud`` / ``target_cloud`` with
 RELIABLE QoS, paced by the bag's time stamps (``--rate 2`` plays twice as fast). Every
 ``~/pose`` the node publishes is matched to its pair by header stamp and written next to the
@@ -32,7 +40,7 @@ import json
 import sys
 from typing import NoReturn
 
-from cegc_ros.replay import ReplayError, replay_bag, summary, write_records
+from cegc_ros.replay import ReplayError, parse_remap, replay_bag, summary, write_records
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -74,6 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--source-topic", help="default: <namespace>/source_cloud")
     ap.add_argument("--target-topic", help="default: <namespace>/target_cloud")
     ap.add_argument("--pose-topic", help="default: <namespace>/<node-name>/pose")
+    ap.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
+                    help="publish the bag's PointCloud2 topic FROM on TO (repeatable; as ros2 "
+                         "bag play --remap). With remaps only they are played; without, a pair "
+                         "bag's two topics, or a bag's one cloud topic onto <namespace>/cloud")
+    ap.add_argument("--start-offset", type=float, default=0.0, metavar="S",
+                    help="skip the bag's first S seconds (default 0)")
     ap.add_argument("--fastdds-profile", default="default", metavar="default|none|PATH",
                     help="Fast DDS profiles file to publish with (default: "
                          "$FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped "
@@ -82,12 +96,19 @@ def main(argv: list[str] | None = None) -> int:
 
     from cegc_ros.data.bag import BagError
     try:
+        remaps = [parse_remap(r) for r in args.remap]
+    except ValueError as err:
+        ap.error(str(err))
+    if args.start_offset < 0:
+        ap.error(f"--start-offset must be >= 0, got {args.start_offset}")
+    try:
         result = replay_bag(args.bag, args.rate, lockstep=args.lockstep, timeout=args.timeout,
                             connect_timeout=args.connect_timeout, node_name=args.node_name,
                             node_namespace=args.node_namespace, source_topic=args.source_topic,
                             target_topic=args.target_topic, pose_topic=args.pose_topic,
                             pair_timeout=args.wait, progress=sys.stderr.isatty(),
-                            fastdds_profile=args.fastdds_profile)
+                            fastdds_profile=args.fastdds_profile, remaps=remaps,
+                            start_offset=args.start_offset)
         info = summary(result)
         if args.out:
             write_records(result, args.out, {"bag": str(args.bag), "rate": args.rate,
