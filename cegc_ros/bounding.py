@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PreprocessConfig
-from .geometry import voxel_downsample
+from .geometry import checked_cloud, voxel_downsample
 
 
 @dataclass
@@ -49,7 +49,7 @@ class BoundedPair:
     target: np.ndarray      # (Nt, 3)
     voxel: float            # metres; 0 when no grid ran
     input_points: tuple[int, int]   # points kept by clean_points, before the grid
-    dropped: tuple[Dropped, Dropped] = field(default_factory=lambda: (Dropped(), Dropped()))  # by clean_points
+    dropped: tuple[Dropped, Dropped] = field(default_factory=lambda: (Dropped(), Dropped()))  # hygiene
 
 
 #: Isolated points after the voxel grid: fewer than ISOLATED_MIN_NEIGHBOURS others within
@@ -76,7 +76,8 @@ EXTENT_SAMPLE = 2000
 
 @dataclass
 class Dropped:
-    """Points :func:`clean_points` removed from one cloud, by reason."""
+    """Points the bound stage removed from one cloud, by reason (:func:`clean_points`, then
+    :func:`drop_isolated` after the grid)."""
 
     non_finite: int = 0
     no_return: int = 0          # exactly (0, 0, 0)
@@ -174,14 +175,9 @@ def cap_points(points: np.ndarray, voxel: float, max_points: int, rng: np.random
 
 def _usable(name: str, xyz: object, cfg: PreprocessConfig, min_points: int
             ) -> tuple[np.ndarray, Dropped]:
-    """Shape and dtype checked (geometry.finite_cloud), then :func:`clean_points`; ValueError
+    """Shape and dtype checked (geometry.checked_cloud), then :func:`clean_points`; ValueError
     naming the cloud when fewer than min_points are left."""
-    arr = np.asarray(xyz)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
-    cloud, dropped = clean_points(arr, cfg.min_range, cfg.max_range)
+    cloud, dropped = clean_points(checked_cloud(name, xyz), cfg.min_range, cfg.max_range)
     cloud = cloud if cloud.dtype in (np.float32, np.float64) else cloud.astype(np.float64)
     if len(cloud) < min_points:
         why = (f" ({dropped.non_finite} non-finite, {dropped.no_return} at (0, 0, 0), "

@@ -54,15 +54,21 @@ class Normalisation:
         return R, (R @ self.c_source + T[:3, 3] - self.c_target) / self.scale
 
 
-def finite_cloud(name: str, xyz: object, min_points: int) -> np.ndarray:
-    """(N, 3) numeric points -> a copy of the finite rows (float32 input stays float32, anything
-    else becomes float64, so a huge float32 cloud is copied once at its size); ValueError naming ``name``
-    when the shape or dtype is wrong or fewer than ``min_points`` rows are finite."""
+def checked_cloud(name: str, xyz: object) -> np.ndarray:
+    """``xyz`` as an array; ValueError naming ``name`` unless it is (N, 3) and numeric."""
     arr = np.asarray(xyz)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
     if not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
+    return arr
+
+
+def finite_cloud(name: str, xyz: object, min_points: int) -> np.ndarray:
+    """(N, 3) numeric points -> a copy of the finite rows (float32 input stays float32, anything
+    else becomes float64, so a huge float32 cloud is copied once at its size); ValueError naming ``name``
+    when the shape or dtype is wrong or fewer than ``min_points`` rows are finite."""
+    arr = checked_cloud(name, xyz)
     arr = arr[np.isfinite(arr).all(axis=1)]                # one copy: float32 stays float32
     arr = arr if arr.dtype in (np.float32, np.float64) else arr.astype(np.float64)
     if len(arr) < min_points:

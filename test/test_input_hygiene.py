@@ -118,3 +118,23 @@ def test_a_pair_with_sensor_defects_registers_as_the_clean_pair():
         assert r.valid
         assert rotation_error_deg(G[:3, :3], r.T_target_source[:3, :3]) < 2.0
         assert np.linalg.norm(G[:3, 3] - r.T_target_source[:3, 3]) < 0.1
+
+
+def test_a_pair_gets_the_same_flying_pixels_whichever_set_it_is_drawn_into():
+    from dataclasses import dataclass
+
+    from cegc_ros.data.corruption import with_flying_pixels
+
+    @dataclass
+    class P:
+        source: np.ndarray
+        target: np.ndarray
+
+    pairs = [P(_room(1000, k), _room(1000, k + 10)) for k in range(3)]
+    a = with_flying_pixels(pairs, 0.05, [7, 8, 9])
+    b = with_flying_pixels(pairs[1:], 0.05, [8, 9])               # another selection, same keys
+    np.testing.assert_array_equal(a[1].source, b[0].source)
+    np.testing.assert_array_equal(a[2].target, b[1].target)
+    moved = np.abs(a[0].source - pairs[0].source).max(1) > 0
+    assert moved.sum() == 50 and not np.array_equal(a[0].source, a[0].target)
+    assert np.array_equal(pairs[0].source, _room(1000, 0))         # the originals are untouched

@@ -11,6 +11,10 @@ out to 12 m (issue: real sensors). Used by ``cegc-eval --flying-pixels`` and
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Iterable, Sequence
+from typing import Any
+
 import numpy as np
 
 #: Range (metres from the sensor) the flying pixels are pushed out to.
@@ -37,3 +41,12 @@ def add_flying_pixels(points: np.ndarray, share: float, rng: np.random.Generator
     p[ok] *= (new_r / r[ok])[:, None]
     out[idx] = p
     return out.astype(np.asarray(points).dtype, copy=False)
+
+
+def with_flying_pixels(pairs: Sequence[Any], share: float, keys: Iterable[int]) -> list[Any]:
+    """Copies of ``pairs`` (dataclasses with ``source`` and ``target`` clouds) with ``share``
+    flying pixels in both clouds, each seeded by its pair's key (source [key, 0], target
+    [key, 1]), so that a pair gets the same defects whichever set it is drawn into."""
+    return [dataclasses.replace(p, source=add_flying_pixels(p.source, share, np.random.default_rng([int(k), 0])),
+                                target=add_flying_pixels(p.target, share, np.random.default_rng([int(k), 1])))
+            for k, p in zip(keys, pairs)]

@@ -207,25 +207,14 @@ def run_cli(args: argparse.Namespace, argv: Sequence[str] = ()) -> Evaluation:
             raise EvalError(f"--flying-pixels must be in (0, 0.5], got {args.flying_pixels}")
         if args.through_node:
             raise EvalError("--flying-pixels corrupts the clouds offline: not with --through-node")
-        pairs = _with_flying_pixels(pairs, args.flying_pixels)
+        from cegc_ros.data.corruption import with_flying_pixels
+        pairs = with_flying_pixels(pairs, args.flying_pixels, range(len(pairs)))
         settings["corruption"] = f"{args.flying_pixels:.1%} flying pixels per cloud (3-12 m)"
     settings["command"] = " ".join(["cegc-eval", *argv])
     return evaluate(pairs, methods, thresholds=_thresholds(args, real_fragments),
                     checkpoint=args.checkpoint, baseline_config=_baseline_config(args),
                     node_outcomes=node_outcomes, progress=not args.no_progress, title=title,
                     settings=settings, params_file=args.params)
-
-
-def _with_flying_pixels(pairs: list[EvalPair], share: float) -> list[EvalPair]:
-    """Each pair with ``share`` flying pixels in both clouds (seeded by the pair's position)."""
-    import dataclasses
-
-    import numpy as np
-
-    from cegc_ros.data.corruption import add_flying_pixels
-    return [dataclasses.replace(p, source=add_flying_pixels(p.source, share, np.random.default_rng([i, 0])),
-                                target=add_flying_pixels(p.target, share, np.random.default_rng([i, 1])))
-            for i, p in enumerate(pairs)]
 
 
 def suite_cli(args: argparse.Namespace, argv: Sequence[str]) -> Path:

@@ -223,8 +223,7 @@ def _error_line(err: Exception, where: str = "") -> str:
     return f"{PROG}: error: {where}{name}{text[0] if text else type(err).__name__}"
 
 
-def _register_one(registrar: Any, source_path: Path, target_path: Path, out: Path | None) -> Any:
-    source, target = read_cloud(source_path), read_cloud(target_path)
+def _register_one(registrar: Any, source: np.ndarray, target: np.ndarray, out: Path | None) -> Any:
     result = registrar.register(source, target)
     if out is not None:
         T = np.asarray(result.T_target_source, float)
@@ -248,9 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         for _, _, _, out in jobs:
             if out is not None and out.suffix.lower() not in WRITE_FORMATS:
                 raise InputError(f"--out {out}: unknown format; use one of {' '.join(WRITE_FORMATS)}")
-        if args.pairs is None:                 # a bad file fails before the engine loads
-            clouds = read_cloud(args.source), read_cloud(args.target)
-            del clouds
+        # SOURCE TARGET: read before the engine loads, so that a bad file fails at once.
+        preloaded = None if args.pairs is not None else (read_cloud(args.source), read_cloud(args.target))
         from cegc_ros.engine import Registrar
 
         registrar = Registrar.from_checkpoint(eng.checkpoint or None, device=eng.device,
@@ -263,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
         where = f"--pairs {args.pairs}:{number}: " if args.pairs is not None else ""
         t0 = time.perf_counter()
         try:
-            result = _register_one(registrar, src, tgt, out)
+            clouds = preloaded or (read_cloud(src), read_cloud(tgt))
+            result = _register_one(registrar, *clouds, out)
         except Exception as err:  # noqa: BLE001 - one line per pair, the others go on
             print(_error_line(err, where), file=sys.stderr)
             failed += 1

@@ -84,13 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
         pairs = [cache[int(i)] for i in idx]
         if args.flying_pixels > 0:
-            import dataclasses
-
-            from cegc_ros.data.corruption import add_flying_pixels
-            pairs = [dataclasses.replace(
-                p, source=add_flying_pixels(p.source, args.flying_pixels, np.random.default_rng([int(i), 0])),
-                target=add_flying_pixels(p.target, args.flying_pixels, np.random.default_rng([int(i), 1])))
-                for i, p in zip(idx, pairs)]
+            from cegc_ros.data.corruption import with_flying_pixels
+            pairs = with_flying_pixels(pairs, args.flying_pixels, idx)   # seeded by cache index
         from cegc_ros import baselines
         peers = [m for m in args.peers.split(",") if m]
         for m in peers:
