@@ -211,16 +211,24 @@ class SequentialConfig:
     (cegc_ros/sequential/odometry.py; docs/sequential.md); ``output.odom_frame`` names its frame.
     """
 
-    voxel_size: float = field(default=0.05, metadata=_meta(
+    voxel_size: float = field(default=0.0, metadata=_meta(
         "Voxel grid (metres) of the clouds that tracking ICP and the keyframe checks run on "
-        "(global registration gets the raw clouds and uses preprocess.*).", 1e-4, 10.0))
+        "(global registration gets the raw clouds and uses preprocess.*); 0 derives it: "
+        "voxel_ratio x the robust extent of the first cloud after a start or reset "
+        "(cegc_ros/sequential/odometry.py, derive_distances).", 0.0, 10.0))
+    voxel_ratio: float = field(default=0.02, metadata=_meta(
+        "Derived voxel grid (when voxel_size is 0), as a fraction of the first cloud's robust "
+        "extent (largest side of its 2%-98% box, as preprocess.voxel_ratio uses): about 4 cm "
+        "on a Kinect view of a room, 3 mm on a 14 cm object scan, 0.3 m on a street LiDAR "
+        "sweep (chosen on the synthetic room and LiDAR sequences, docs/sequential.md).",
+        1e-4, 0.2))
     max_range: float = field(default=0.0, metadata=_meta(
         "Points farther than this (metres) from the sensor (the cloud frame's origin) are left "
         "out of tracking and the keyframe checks; 0 keeps all. Depth noise grows with range "
         "(Kinect-like: quadratically), and far noisy points bias ICP.", 0.0, 10000.0))
-    icp_max_distance: float = field(default=0.2, metadata=_meta(
+    icp_max_distance: float = field(default=0.0, metadata=_meta(
         "Correspondence distance (metres) of the tracking ICP: how far the constant-velocity "
-        "prediction may be off and still be pulled in.", 1e-4, 100.0))
+        "prediction may be off and still be pulled in; 0 derives it: 4 voxels.", 0.0, 100.0))
     icp_max_iterations: int = field(default=30, metadata=_meta(
         "Iterations of the tracking ICP.", 1, 1000))
     icp_prior: float = field(default=0.01, metadata=_meta(
@@ -229,9 +237,9 @@ class SequentialConfig:
         "constrains less than this (a wall and the floor leave one free) stay near the "
         "prediction instead of sliding on depth noise; 0 is plain point-to-plane ICP.",
         0.0, 1.0))
-    inlier_distance: float = field(default=0.05, metadata=_meta(
+    inlier_distance: float = field(default=0.0, metadata=_meta(
         "Distance (metres) within which an aligned point counts as on the keyframe, for "
-        "fitness, overlap and the covariance.", 1e-5, 100.0))
+        "fitness, overlap and the covariance; 0 derives it: 1 voxel.", 0.0, 100.0))
     min_fitness: float = field(default=0.5, metadata=_meta(
         "A registration (ICP from the prediction, or the global one) is accepted when at least "
         "this share of the cloud's voxels lies within inlier_distance of the keyframe; below it "
@@ -245,9 +253,9 @@ class SequentialConfig:
     keyframe_min_overlap: float = field(default=0.7, metadata=_meta(
         "A new keyframe is taken when the fitness, or the overlap (share of the keyframe's "
         "voxels within inlier_distance of the aligned cloud), falls below this.", 0.0, 1.0))
-    keyframe_max_translation: float = field(default=0.5, metadata=_meta(
+    keyframe_max_translation: float = field(default=0.0, metadata=_meta(
         "A new keyframe is taken when the cloud is farther than this (metres) from the "
-        "keyframe.", 0.0, 1000.0))
+        "keyframe; 0 derives it: 10 voxels.", 0.0, 1000.0))
     keyframe_max_rotation: float = field(default=20.0, metadata=_meta(
         "A new keyframe is taken when the cloud is rotated more than this (degrees) from the "
         "keyframe.", 0.0, 180.0))

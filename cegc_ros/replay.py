@@ -33,11 +33,14 @@ class ReplayError(Exception):
 
 @dataclass
 class ReplayRecord:
-    """One pair of the bag and what the node answered.
+    """One pair (or, for a cloud stream, one cloud) of the bag and what the node answered.
 
-    T_est / T_gt: (4, 4) row-major nested lists (T_target_source), None when the node published
-    no pose for the pair (dropped, rejected, lost) / the bag has no ground truth for it.
-    latency_s: from publishing the pair's later cloud to receiving its pose (None without pose).
+    T_est / T_gt: (4, 4) row-major nested lists, None when the node published no answer for it
+    (dropped, rejected, lost) / the bag has no ground truth for it. A pair: T_target_source from
+    ``~/pose`` and ``/cegc/ground_truth``. A stream: T_odom_cloud from ``~/odometry`` and, for a
+    sequence bag, the ground truth relative to the first cloud played (the odometry's frame).
+    latency_s: from publishing the item's last cloud to receiving its answer (None without).
+    loop: which play of the bag (0 first; ``loops`` > 1).
     """
 
     index: int
@@ -45,6 +48,7 @@ class ReplayRecord:
     T_est: list[list[float]] | None
     T_gt: list[list[float]] | None
     latency_s: float | None
+    loop: int = 0
 
 
 @dataclass
@@ -55,10 +59,13 @@ class ReplayResult:
     # The Fast DDS profiles file named when the replay's node was created (None: Fast DDS's
     # defaults). Fast DDS applies it only if that was the process's first ROS node.
     fastdds_profile: str | None = None
+    loops: int = 1                       # plays of the bag done
+    stream: bool = False                 # one cloud stream (sequential mode), not pairs
 
     def to_json(self) -> dict[str, Any]:
         return {"records": [asdict(r) for r in self.records], "diagnostics": self.diagnostics,
-                "wall_s": self.wall_s, "fastdds_profile": self.fastdds_profile}
+                "wall_s": self.wall_s, "fastdds_profile": self.fastdds_profile,
+                "loops": self.loops}
 
 
 def _topic(namespace: str, name: str) -> str:
@@ -67,6 +74,7 @@ def _topic(namespace: str, name: str) -> str:
 
 
 TOPIC_CLOUD = "/cegc/cloud"          # the sequence-bag layout of cegc_ros.data.bag
+TOPIC_CLOUD_GT = "/cegc/cloud_ground_truth"
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
 
@@ -126,7 +134,8 @@ def _scan_bag(bag_path: Path, remaps: list[tuple[str, str]], namespace: str, sou
               target_topic: str, start_offset: float = 0.0
               ) -> tuple[TopicPlan, list[tuple[int, str, bytes]], dict[int, np.ndarray]]:
     """The plan, the chosen cloud messages (log time ns, bag topic, raw CDR) in log order from
-    ``start_offset`` s after the bag's first message on, and a pair bag's ground truth by stamp."""
+    ``start_offset`` s after the bag's first message on, and the ground truth by stamp (a pair
+    bag's T_target_source; a sequence bag's T_world_cloud made relative to the first cloud)."""
     from geometry_msgs.msg import PoseStamped
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
@@ -143,14 +152,15 @@ def _scan_bag(bag_path: Path, remaps: list[tuple[str, str]], namespace: str, sou
         with Reader(bag_path) as reader:
             plan = plan_topics({c.topic: c.msgtype for c in reader.connections}, remaps,
                                namespace, source_topic, target_topic)
-            wanted = set(plan.routes) | ({TOPIC_GT} if plan.pairs else set())
+            gt_topic = TOPIC_GT if plan.pairs else TOPIC_CLOUD_GT
+            wanted = set(plan.routes) | {gt_topic}
             conns = [c for c in reader.connections if c.topic in wanted]
             first = reader.start_time
             for conn, log_ns, raw in reader.messages(connections=conns):
                 if log_ns - first < start_offset * 1e9:
                     continue
                 raw = bytes(raw)
-                if conn.topic == TOPIC_GT:
+                if conn.topic == gt_topic:
                     msg = deserialize_message(raw, PoseStamped)
                     gt[time_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
                 else:
@@ -159,6 +169,11 @@ def _scan_bag(bag_path: Path, remaps: list[tuple[str, str]], namespace: str, sou
         raise
     except Exception as err:
         raise BagError(f"cannot read bag {bag_path}: {type(err).__name__}: {err}") from err
+    if not plan.pairs and gt and clouds:
+        # A stream's answers are odometry poses in the first played cloud's frame.
+        from msg_adapters.point_cloud2_cdr import header_stamp_ns
+        first_gt = gt.get(header_stamp_ns(clouds[0][2]))
+        gt = {} if first_gt is None else {k: np.linalg.inv(first_gt) @ T for k, T in gt.items()}
     return plan, clouds, gt
 
 
@@ -169,8 +184,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                pose_topic: str | None = None, pair_timeout: float = 30.0,
                progress: bool = False, fastdds_profile: str = "default",
                remaps: list[tuple[str, str]] | None = None,
-               start_offset: float = 0.0) -> ReplayResult:
-    """Publish a bag's clouds into a running register_node and collect its poses.
+               start_offset: float = 0.0, loops: int = 1) -> ReplayResult:
+    """Publish a bag's clouds into a running register_node and collect its answers.
 
     Args:
         bag_path: a rosbag2 directory (sqlite3 or mcap): a pair bag of ``cegc-make-bag``, a
@@ -178,14 +193,20 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         remaps: (FROM, TO) topic remaps, as ``ros2 bag play --remap``; they choose the topics.
         start_offset: skip the bag's first ``start_offset`` seconds (log time).
         rate: playback speed factor on the bag's log times (ignored with ``lockstep``).
-        lockstep: wait for the node's answer to each pair before publishing the next.
-        timeout: after the last pair, wait at most this long (s) for outstanding poses.
+        lockstep: wait for the node's answer to each item (a pair; or a cloud of a stream)
+            before publishing the next.
+        loops: plays of the bag (as ``ros2 bag play --loop``; 0: until interrupted). Before
+            each play after the first the node's ``~/reset`` is called (when it offers one), so
+            a sequential-mode node takes the repeated stamps as a new odometry.
+        timeout: after the last item of a play, wait at most this long (s) for outstanding
+            answers.
         connect_timeout: wait at most this long (s) for the node's topics to match.
         node_name, node_namespace: where the node runs (its topics are derived from them).
         source_topic, target_topic, pose_topic: explicit topic names (override the above).
+            A stream is answered on ``<node>/odometry`` (nav_msgs/Odometry, sequential mode).
         pair_timeout: with ``lockstep``, the longest wait (s) for the node's answer to one
-            pair (a pose or a counted rejection): past it, or as soon as the node's
-            subscription to the inputs is gone (the node died), ReplayError.
+            item (its pose or odometry, or a counted rejection): past it, or as soon as the
+            node's subscription to the inputs is gone (the node died), ReplayError.
         fastdds_profile: Fast DDS profiles file of the publishing node, as
             :func:`cegc_ros.paths.fastdds_profile` takes it: ``"default"`` (the user's
             FASTRTPS_DEFAULT_PROFILES_FILE if set, else the shipped profile for huge clouds),
@@ -193,23 +214,27 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
             before (Fast DDS reads its profiles once per process).
 
     Returns:
-        A :class:`ReplayResult`, one record per pair (by source stamp) in bag order.
+        A :class:`ReplayResult`, one record per item (by stamp) in bag order, per play.
 
     Raises:
         cegc_ros.data.bag.BagError: unreadable bag or missing topics.
         ReplayError: the node's topics never matched within ``connect_timeout``; with
-            ``lockstep``, the node went away or did not answer a pair within ``pair_timeout``.
+            ``lockstep``, the node went away or did not answer an item within ``pair_timeout``.
         FileNotFoundError: ``fastdds_profile`` names no file.
     """
     if not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate}")
+    if loops < 0:
+        raise ValueError(f"loops must be >= 0 (0: until interrupted), got {loops}")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
 
     from cegc_ros.paths import fastdds_profile as profile_env
     from msg_adapters.nav import time_to_ns
@@ -220,21 +245,21 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         raise ValueError(f"start offset must be >= 0, got {start_offset}")
     src_topic = source_topic or _topic(node_namespace, "source_cloud")
     tgt_topic = target_topic or _topic(node_namespace, "target_cloud")
-    out_topic = pose_topic or _topic(node_namespace, f"{node_name}/pose")
     plan, clouds, gt = _scan_bag(Path(bag_path), list(remaps or []), node_namespace, src_topic,
                                  tgt_topic, start_offset)
-    if lockstep and not plan.pairs:
-        raise ReplayError("--lockstep waits for a pose per pair: it needs the node's two inputs "
-                          f"(this replay publishes one stream: {', '.join(plan.routes.values())})")
+    node_path = _topic(node_namespace, node_name)
+    out_topic = pose_topic or (f"{node_path}/pose" if plan.pairs else f"{node_path}/odometry")
     per_item = 2 if plan.pairs else 1        # messages that make one answerable item
+    item = "pair" if plan.pairs else "cloud"
+    n_items = len(clouds) // per_item
 
     context = rclpy.Context()                   # own context: callers may run rclpy too
     rclpy.init(context=context)
     lock = threading.Lock()
-    poses: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
+    answers: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
     diag: dict[str, str] = {}
     answered = threading.Condition(lock)
-    status_name = f"{_topic(node_namespace, node_name)}: registration"  # the node's full name
+    status_name = f"{node_path}: registration"      # the node's full name
     node = executor = spinner = None
     try:
         with profile_env(fastdds_profile) as profile:   # read when the participant is made
@@ -243,11 +268,12 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         pubs = {bag_topic: node.create_publisher(PointCloud2, out, qos)
                 for bag_topic, out in plan.routes.items()}
 
-        def on_pose(msg: Any) -> None:
+        def on_answer(msg: Any) -> None:
             now = time.monotonic()
             stamp = time_to_ns(msg.header.stamp)
+            T = pose_to_matrix(msg.pose if plan.pairs else msg.pose.pose)
             with answered:
-                poses[stamp] = (pose_to_matrix(msg.pose), now)
+                answers[stamp] = (T, now)
                 answered.notify_all()
 
         def on_diag(msg: Any) -> None:
@@ -258,8 +284,10 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                         diag.update({kv.key: kv.value for kv in st.values})
                         answered.notify_all()
 
-        node.create_subscription(PoseStamped, out_topic, on_pose, 100)
+        node.create_subscription(PoseStamped if plan.pairs else Odometry, out_topic, on_answer,
+                                 100)
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+        reset = node.create_client(Trigger, f"{node_path}/reset")
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         spinner = threading.Thread(target=_spin, args=(executor,), name="cegc_replay_spin",
@@ -271,7 +299,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                    and node.count_publishers(out_topic)):
             if time.monotonic() > end:
                 raise ReplayError(f"no register_node answered within {connect_timeout} s "
-                                  f"(publishing {src_topic}, {tgt_topic}; listening {out_topic})")
+                                  f"(publishing {', '.join(plan.routes.values())}; listening "
+                                  f"{out_topic})")
             time.sleep(0.05)
         base: int | None = None    # the node's pairs_done before this replay (lockstep)
         if lockstep:
@@ -279,56 +308,68 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                 if answered.wait_for(lambda: "pairs_done" in diag, min(connect_timeout, 5.0)):
                     base = int(diag["pairs_done"])
 
-        published: dict[int, float] = {}    # source stamp -> publish time of the later cloud
-        order: list[int] = []
-        pending: dict[int, set[str]] = {}   # stamp -> topics published so far
-        bar = _progress(len(clouds) // per_item, progress)
+        records: list[ReplayRecord] = []
+        sent = 0                            # items sent over all plays (for pairs_done)
         t_start = time.monotonic()
-        log0 = clouds[0][0] if clouds else 0
-        try:
-            for log_ns, topic, raw in clouds:
-                stamp = header_stamp_ns(raw)
+        play = 0
+        while loops == 0 or play < loops:
+            if play > 0:
+                _call_reset(reset, node_path)
+            with answered:
+                answers.clear()
+            published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
+            order: list[int] = []
+            pending: dict[int, set[str]] = {}   # stamp -> topics published so far
+            bar = _progress(n_items, progress, item)
+            t_play = time.monotonic()
+            log0 = clouds[0][0] if clouds else 0
+            try:
+                for log_ns, topic, raw in clouds:
+                    stamp = header_stamp_ns(raw)
+                    if not lockstep:
+                        delay = t_play + (log_ns - log0) / 1e9 / rate - time.monotonic()
+                        if delay > 0:
+                            time.sleep(delay)
+                    if lockstep and pending.get(stamp) is None and order:
+                        _wait_answer(answered, answers, diag, order[-1],
+                                     None if base is None else base + sent, pair_timeout,
+                                     pubs, len(order), n_items, item)
+                    pubs[topic].publish(raw)
+                    seen = pending.setdefault(stamp, set())
+                    seen.add(topic)
+                    if len(seen) == per_item:
+                        published[stamp] = time.monotonic()
+                        order.append(stamp)
+                        sent += 1
+                        bar.update(1)
+                if lockstep and order:
+                    _wait_answer(answered, answers, diag, order[-1],
+                                 None if base is None else base + sent, pair_timeout,
+                                 pubs, len(order), n_items, item)
+                    if base is not None:    # diagnostics that count every item of this play
+                        with answered:
+                            answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
+                                              >= base + sent, timeout)
                 if not lockstep:
-                    delay = t_start + (log_ns - log0) / 1e9 / rate - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)
-                if lockstep and pending.get(stamp) is None and order:
-                    _wait_answer(answered, poses, diag, order[-1],
-                                 None if base is None else base + len(order), pair_timeout,
-                                 pubs, len(order), len(clouds) // per_item)
-                pubs[topic].publish(raw)
-                seen = pending.setdefault(stamp, set())
-                seen.add(topic)
-                if len(seen) == per_item:
-                    published[stamp] = time.monotonic()
-                    order.append(stamp)
-                    bar.update(1)
-            if lockstep and order:
-                _wait_answer(answered, poses, diag, order[-1],
-                             None if base is None else base + len(order), pair_timeout,
-                             pubs, len(order), len(clouds) // per_item)
-                if base is not None:    # diagnostics that count every pair of this replay
                     with answered:
-                        answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
-                                          >= base + len(order), timeout)
-            if not lockstep:
-                with answered:
-                    answered.wait_for(lambda: all(s in poses for s in order), timeout)
-        finally:
-            bar.close()
+                        answered.wait_for(lambda: all(s in answers for s in order), timeout)
+            finally:
+                bar.close()
+            with lock:
+                for stamp in order:
+                    got = answers.get(stamp)
+                    T_gt = gt.get(stamp)
+                    records.append(ReplayRecord(
+                        index=len(records), stamp_ns=stamp,
+                        T_est=None if got is None else got[0].tolist(),
+                        T_gt=None if T_gt is None else T_gt.tolist(),
+                        latency_s=None if got is None else got[1] - published[stamp],
+                        loop=play))
+            play += 1
         wall = time.monotonic() - t_start
-        records = []
         with lock:
-            for k, stamp in enumerate(order):
-                got = poses.get(stamp)
-                T_gt = gt.get(stamp)
-                records.append(ReplayRecord(
-                    index=k, stamp_ns=stamp,
-                    T_est=None if got is None else got[0].tolist(),
-                    T_gt=None if T_gt is None else T_gt.tolist(),
-                    latency_s=None if got is None else got[1] - published[stamp]))
             last_diag = dict(diag)
-        return ReplayResult(records, last_diag, wall, profile)
+        return ReplayResult(records, last_diag, wall, profile, loops=play, stream=not plan.pairs)
     finally:
         # Always, also after an error: a spin thread still inside rcl when the interpreter
         # exits aborts the process ("terminate called without an active exception").
@@ -339,6 +380,25 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+#: How long a replay waits for the node's ``~/reset`` service between plays (s).
+RESET_TIMEOUT_S = 5.0
+
+
+def _call_reset(client: Any, node_path: str) -> None:
+    """Call the node's ``~/reset`` before a repeated play; ReplayError when it has none or
+    refuses (the repeated stamps would be refused as going back in time)."""
+    from std_srvs.srv import Trigger
+
+    if not client.wait_for_service(timeout_sec=RESET_TIMEOUT_S):
+        raise ReplayError(f"a repeated play needs {node_path}/reset (std_srvs/Trigger) to "
+                          f"start over; no such service answered within {RESET_TIMEOUT_S:g} s")
+    done = threading.Event()
+    future = client.call_async(Trigger.Request())
+    future.add_done_callback(lambda _f: done.set())
+    if not done.wait(RESET_TIMEOUT_S) or future.result() is None or not future.result().success:
+        raise ReplayError(f"{node_path}/reset did not succeed before the repeated play")
 
 
 def _spin(executor: Any) -> None:
@@ -357,9 +417,10 @@ ALIVE_CHECK_S = 0.25
 
 def _wait_answer(cond: threading.Condition, poses: dict[int, Any], diag: dict[str, str],
                  stamp: int, done_target: int | None, limit: float, pubs: dict[str, Any],
-                 n_sent: int, n_total: int) -> None:
-    """Wait until the node answered pair ``stamp``: its pose, or pairs_done >= done_target.
-    ReplayError when no node subscribes to the inputs any more, or after ``limit`` s."""
+                 n_sent: int, n_total: int, item: str = "pair") -> None:
+    """Wait until the node answered item ``stamp``: its pose (odometry), or pairs_done >=
+    done_target. ReplayError when no node subscribes to the inputs any more, or after
+    ``limit`` s."""
     def answered() -> bool:
         return stamp in poses or (done_target is not None
                                   and int(diag.get("pairs_done", "-1")) >= done_target)
@@ -369,11 +430,11 @@ def _wait_answer(cond: threading.Condition, poses: dict[int, Any], diag: dict[st
             if not all(p.get_subscription_count() for p in pubs.values()):
                 raise ReplayError(f"register_node went away (nothing subscribes to "
                                   f"{', '.join(p.topic_name for p in pubs.values())} any more) "
-                                  f"after {n_sent} of {n_total} pairs were sent, "
+                                  f"after {n_sent} of {n_total} {item}s were sent, "
                                   f"{len(poses)} answered with a pose")
             left = end - time.monotonic()
             if left <= 0:
-                raise ReplayError(f"register_node did not answer pair {n_sent} of {n_total} "
+                raise ReplayError(f"register_node did not answer {item} {n_sent} of {n_total} "
                                   f"within --wait {limit:g} s ({len(poses)} poses so far)")
             cond.wait(min(ALIVE_CHECK_S, left))
 
@@ -383,11 +444,11 @@ class _NoBar:
     def close(self) -> None: ...
 
 
-def _progress(total: int, enabled: bool) -> Any:
+def _progress(total: int, enabled: bool, unit: str = "pair") -> Any:
     if not enabled:
         return _NoBar()
     from tqdm import tqdm
-    return tqdm(total=total, unit="pair", desc="replay")
+    return tqdm(total=total, unit=unit, desc="replay")
 
 
 def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) -> None:
@@ -397,13 +458,13 @@ def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) 
     if path.suffix.lower() == ".csv":
         with path.open("w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["index", "stamp_ns", "latency_s"] + [f"est_{i}{j}" for i in range(4)
+            w.writerow(["index", "loop", "stamp_ns", "latency_s"] + [f"est_{i}{j}" for i in range(4)
                                                               for j in range(4)]
                        + [f"gt_{i}{j}" for i in range(4) for j in range(4)])
             for r in result.records:
                 est = np.asarray(r.T_est).ravel().tolist() if r.T_est else [""] * 16
                 gt = np.asarray(r.T_gt).ravel().tolist() if r.T_gt else [""] * 16
-                w.writerow([r.index, r.stamp_ns, "" if r.latency_s is None else r.latency_s]
+                w.writerow([r.index, r.loop, r.stamp_ns, "" if r.latency_s is None else r.latency_s]
                            + est + gt)
     else:
         path.write_text(json.dumps({"meta": meta, **result.to_json()}, indent=1))
@@ -413,8 +474,10 @@ def summary(result: ReplayResult) -> dict[str, Any]:
     """Counts, latency percentiles and median errors (when ground truth is present)."""
     recs = result.records
     with_pose = [r for r in recs if r.T_est is not None]
-    out: dict[str, Any] = {"pairs": len(recs), "poses": len(with_pose),
-                           "wall_s": round(result.wall_s, 3)}
+    out: dict[str, Any] = {"clouds" if result.stream else "pairs": len(recs),
+                           "poses": len(with_pose), "wall_s": round(result.wall_s, 3)}
+    if result.loops != 1:
+        out["loops"] = result.loops
     lat = [r.latency_s for r in with_pose if r.latency_s is not None]
     if lat:
         p50, p90 = np.percentile(lat, [50, 90])

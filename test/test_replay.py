@@ -139,10 +139,12 @@ def _recording(path, storage: str = "sqlite3", clouds=("/os_cloud_node/points",)
 
 
 class CloudRecorder:
-    """Records the stamps of the clouds arriving on one topic; advertises the pose topic."""
+    """Records the stamps of the clouds arriving on one topic; advertises the pose and
+    odometry topics (a pairs-mode or sequential-mode node), never answers."""
 
     def __init__(self, namespace: str, topic: str) -> None:
         from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
@@ -154,6 +156,7 @@ class CloudRecorder:
         self.stamps: list[int] = []
         self.node.create_subscription(PointCloud2, topic, lambda m: self.stamps.append(rh.stamp_of(m)), qos)
         self.node.create_publisher(PoseStamped, f"{namespace}/register_node/pose", 10)
+        self.node.create_publisher(Odometry, f"{namespace}/register_node/odometry", 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -164,6 +167,39 @@ class CloudRecorder:
         self.thread.join(5.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def test_lockstep_on_a_stream_waits_per_cloud_and_ends_after_wait(tmp_path, capsys):
+    # A recording's one cloud stream in lockstep: the first cloud goes out, the node never
+    # answers it on ~/odometry nor counts it, and the replay ends after --wait with one line.
+    bag = _recording(tmp_path / "rec_lock")
+    rec = CloudRecorder("/streamlock", "/streamlock/cloud")
+    try:
+        code, out, err, _ = _replay([str(bag), "--lockstep", "--node-namespace", "/streamlock",
+                                     "--wait", "1.0"], capsys)
+    finally:
+        rec.close()
+    assert rec.stamps == [50 * 10**8]
+    assert code == 1 and out == ""
+    assert err == ["cegc-replay: register_node did not answer cloud 1 of 4 within --wait 1 s "
+                   "(0 poses so far)"]
+
+
+def test_a_repeated_play_needs_the_nodes_reset_service(tmp_path, capsys):
+    bag = _recording(tmp_path / "rec_loop", n=2)
+    rec = CloudRecorder("/noreset", "/noreset/cloud")
+    try:
+        code, out, err, _ = _replay([str(bag), "--node-namespace", "/noreset", "--loops", "2",
+                                     "--timeout", "0.3", "--rate", "4"], capsys)
+    finally:
+        rec.close()
+    assert rec.stamps == [50 * 10**8, 51 * 10**8]             # the first play went out
+    assert code == 1 and out == ""
+    assert err == ["cegc-replay: a repeated play needs /noreset/register_node/reset "
+                   "(std_srvs/Trigger) to start over; no such service answered within 5 s"]
+    with pytest.raises(SystemExit) as exc:
+        _replay([str(bag), "--loop", "--loops", "2"], capsys)
+    assert exc.value.code == 2
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
@@ -177,7 +213,7 @@ def test_a_sensor_recording_plays_its_cloud_topic_onto_cloud_and_skips_the_rest(
         rec.close()
     assert code == 0, err
     assert rec.stamps == [(50 + k) * 10**8 for k in range(4)]     # IMU and vendor status skipped
-    assert '"pairs": 4' in out
+    assert '"clouds": 4' in out
 
 
 def test_remap_chooses_the_topic_and_where_it_goes_and_start_offset_skips(tmp_path, capsys):
@@ -200,3 +236,28 @@ def test_remap_chooses_the_topic_and_where_it_goes_and_start_offset_skips(tmp_pa
     with pytest.raises(SystemExit) as exc:
         _replay([str(bag), "--remap", "no-separator"], capsys)
     assert exc.value.code == 2
+
+
+def test_make_bag_writes_your_own_cloud_files_as_a_sequence_bag(tmp_path, capsys):
+    import numpy as np
+
+    from cegc_ros.data.bag import read_sequence
+    from cegc_ros.tools.make_bag import main as make_bag
+
+    rng = np.random.default_rng(3)
+    files = []
+    for k in range(3):
+        files.append(tmp_path / f"scan_{k}.npy")
+        np.save(files[-1], rng.uniform(-20, 20, (500 + k, 4)))     # x y z intensity
+    out = tmp_path / "scans_bag"
+    assert make_bag(["--clouds", *map(str, files), "--rate", "5", "--frame-id", "os_sensor",
+                     "--out", str(out)]) == 0
+    assert capsys.readouterr().out.startswith("wrote 3 clouds (5 Hz, frame os_sensor)")
+    frames = list(read_sequence(out))
+    assert [f.stamp_ns - frames[0].stamp_ns for f in frames] == [0, 2 * 10**8, 4 * 10**8]
+    for f, path in zip(frames, files):
+        np.testing.assert_allclose(f.cloud, np.load(path)[:, :3].astype(np.float32))
+        assert f.frame_id == "os_sensor" and f.T_world_cloud is None
+    assert make_bag(["--clouds", str(tmp_path / "nope.npy"), "--out", str(tmp_path / "b2")]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"cegc-make-bag: error: {tmp_path / 'nope.npy'}: no such file"]

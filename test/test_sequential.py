@@ -19,6 +19,7 @@ from cegc_ros.metrics import rotation_error_deg
 from cegc_ros.sequential import KeyframeOdometry
 from cegc_ros.sequential import icp as icp_stage
 from cegc_ros.sequential.metrics import ate
+from cegc_ros.sequential.odometry import derive_distances
 from cegc_ros.sequential.se3 import compose_covariance
 
 S = 10**9
@@ -84,8 +85,14 @@ def straight_run(n: int, step: float = 0.1, yaw_step: float = 2.0) -> list[np.nd
     return [pose(yaw_step * k, (step * k, 0.0, 1.0)) for k in range(n)]
 
 
+#: The point world's tests pin the keyframe and recovery rules on the grid they were measured
+#: on (the room defaults of earlier rounds), not on the one derived from its 6 m extent.
+POINT_WORLD_METRES = {"voxel_size": 0.05, "icp_max_distance": 0.2, "inlier_distance": 0.05,
+                      "keyframe_max_translation": 0.5}
+
+
 def cfg(**kw) -> SequentialConfig:
-    return dataclasses.replace(SequentialConfig(), **kw)
+    return dataclasses.replace(SequentialConfig(), **(POINT_WORLD_METRES | kw))
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,6 +144,71 @@ def test_recovery_after_dropped_frames_uses_the_real_engine(robot_sequence):
     assert odo.stats.recoveries >= 1 and odo.stats.rejected == 0
     assert all(r.method == "icp" for r in results[keep.index(31):])
     assert ate(gt, np.stack([r.T_odom_cloud for r in results]))["max_first"] < 0.06
+
+
+def scaled(seq, factor: float):
+    """The sequence with every length times ``factor`` (clouds and ground-truth translations)."""
+    poses = seq.poses.copy()
+    poses[:, :3, 3] *= factor
+    return [c * np.float32(factor) for c in seq.clouds], poses
+
+
+@pytest.mark.parametrize("factor", [0.05, 1.0, 20.0])
+def test_the_same_defaults_track_at_any_scale(robot_sequence, factor):
+    # Room 3's robot sequence shrunk to an object 10 cm across (0.05), as rendered, and grown
+    # to a 40 m hall (20): with the default (derived) distances the odometry tracks all three
+    # to the same relative accuracy, on a grid that follows the scale.
+    clouds, poses = scaled(robot_sequence, factor)
+    gt = np.linalg.inv(poses[0]) @ poses
+    odo = KeyframeOdometry(SequentialConfig())
+    est = np.stack([odo.feed(s, c).T_odom_cloud for s, c in zip(robot_sequence.stamps_ns, clouds)])
+    d = odo.distances
+    # Measured: extent 1.93 m x factor, voxel 0.0386 m x factor (at every factor).
+    assert d.voxel_size == pytest.approx(0.02 * d.extent)
+    assert d.voxel_size == pytest.approx(0.0386 * factor, rel=0.05)
+    assert (d.icp_max_distance, d.inlier_distance, d.keyframe_max_translation) == pytest.approx(
+        (4 * d.voxel_size, d.voxel_size, 10 * d.voxel_size))
+    err = ate(gt, est)
+    assert err["max_first"] < 0.06 * factor, err                # 1.56 m x factor of path
+    assert err["rot_first"] < 1.0, err
+    assert odo.stats.tracked == len(clouds) - 1 and odo.stats.rejected == 0
+
+
+def test_fixed_metres_fail_on_an_object_where_the_derived_ones_track(robot_sequence):
+    # The room's old absolute defaults (5 cm grid, 0.2 m ICP distance) on the 10 cm version
+    # of the same sequence: the whole cloud falls into a few voxels and the odometry is refused
+    # or lost. This is what the derived defaults fix (the test above, factor 0.05).
+    clouds, poses = scaled(robot_sequence, 0.05)
+    odo = KeyframeOdometry(cfg())                    # POINT_WORLD_METRES: the old room defaults
+    with pytest.raises(ValueError, match="voxels of 0.05 m, at least 16 are needed"):
+        odo.feed(robot_sequence.stamps_ns[0], clouds[0])
+    assert odo.stats.invalid == 1 and odo.distances is None
+
+
+def test_distances_derive_from_the_first_cloud_until_reset_and_settings_override():
+    d = derive_distances(SequentialConfig(), 2.5)
+    assert (d.voxel_size, d.icp_max_distance, d.inlier_distance,
+            d.keyframe_max_translation) == pytest.approx((0.05, 0.2, 0.05, 0.5))
+    d = derive_distances(dataclasses.replace(SequentialConfig(), voxel_size=0.01,
+                                             inlier_distance=0.03), 2.0)
+    assert (d.voxel_size, d.icp_max_distance, d.inlier_distance,
+            d.keyframe_max_translation) == pytest.approx((0.01, 0.04, 0.03, 0.1))
+    with pytest.raises(ValueError, match="no voxel grid can be derived"):
+        derive_distances(SequentialConfig(), 0.0)
+
+    w = World()
+    odo = KeyframeOdometry()
+    assert odo.distances is None
+    odo.feed(1 * S, w.cloud(pose()))
+    first = odo.distances
+    odo.feed(2 * S, w.cloud(pose(2.0, (0.1, 0.0, 0.0))) * np.float32(1.0))
+    assert odo.distances == first                     # fixed by the first cloud
+    odo.update(dataclasses.replace(SequentialConfig(), icp_max_distance=0.5))
+    assert odo.distances.icp_max_distance == 0.5 and odo.distances.voxel_size == first.voxel_size
+    odo.reset()
+    assert odo.distances is None
+    odo.feed(3 * S, w.cloud(pose()) * np.float32(0.1))
+    assert odo.distances.voxel_size == pytest.approx(0.1 * first.voxel_size, rel=0.02)
 
 
 # --------------------------------------------------------------------------------------------

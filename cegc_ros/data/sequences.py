@@ -1,11 +1,14 @@
 """Sequences of consecutive clouds with ground-truth poses, for odometry (sequential mode).
 
-Two sources:
+Three sources:
 
 * :func:`make_room_sequence`: a handheld Kinect moving through a procedural room of
   :mod:`cegc_ros.data.scenes` (the same trajectory generator as the fragments). Each cloud is one
   noisy depth frame back-projected into its camera frame, or with ``frames_per_cloud > 1`` a
   short fragment fusing that many consecutive frames in the first one's camera frame.
+* :func:`make_lidar_sequence`: a spinning multi-beam LiDAR (:class:`cegc_ros.data.sensors.
+  LidarSensor`) on a ground robot driving the same kind of loop, one sweep per cloud; ``scale``
+  enlarges the whole world (room, path, range noise) into a hall or a yard.
 * :func:`load_bunny_sequence`: the Stanford bunny range scans (``../shared/data/real/bunny``) as
   an object sequence (a turntable ring by default), poses chained from the pairwise ground truth.
 
@@ -181,6 +184,48 @@ def make_room_sequence(scene_seed: int, num_clouds: int, frame_step: int = 3,
             "pixel_stride": pixel_stride, "voxel_size": voxel_size, "noise": noise, "fps": fps,
             "room_size": list(room.size)}
     return Sequence(clouds, np.stack(poses), np.asarray(stamps, np.int64), FRAME_ID, info)
+
+
+def make_lidar_sequence(scene_seed: int, num_clouds: int, scale: float = 1.0,
+                        rate_hz: float = 10.0, height: float = 1.2,
+                        start_ns: int = 1_700_000_000 * 10**9) -> Sequence:
+    """Sweeps of a LiDAR on a ground robot in the room of ``scene_seed``, ``rate_hz`` apart.
+
+    The robot drives :func:`robot_trajectory`'s loop (0.4 m/s, +-20 deg sway) with the sensor
+    ``height`` m above the floor, level (z up, x along the view); one noisy 32-beam sweep per
+    cloud (:class:`cegc_ros.data.sensors.LidarSensor`, no motion distortion), in the sensor
+    frame. ``scale`` multiplies every length (room, path, points, noise): 10 turns a 3-5 m room
+    into a 30-50 m hall driven at 4 m/s. Deterministic from the arguments.
+    """
+    from .sensors import LidarSensor
+
+    if num_clouds < 1 or not scale > 0 or not rate_hz > 0:
+        raise ValueError(f"num_clouds must be >= 1, scale and rate_hz > 0; got {num_clouds}, "
+                         f"{scale}, {rate_hz}")
+    room = scenes.get_room(int(scene_seed))
+    fps = 30.0
+    step = max(1, round(fps / rate_hz))
+    cams = robot_trajectory(room, (num_clouds - 1) * step + 1, fps=fps, height=height,
+                            pitch_deg=0.0)[::step]
+    sensor = LidarSensor()
+    clouds, poses, stamps = [], [], []
+    for k, T_cam in enumerate(cams):
+        fwd = T_cam[:3, 2]                                   # optical z: the view direction
+        yaw = float(np.arctan2(fwd[1], fwd[0]))
+        T = np.eye(4)
+        T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0],
+                     [0.0, 0.0, 1.0]]
+        T[:3, 3] = T_cam[:3, 3]
+        rng = np.random.default_rng([int(scene_seed), k, 0x11DA])
+        clouds.append((sensor.sweep(room, T, rng) * np.float32(scale)).astype(np.float32))
+        T_scaled = T.copy()
+        T_scaled[:3, 3] *= scale
+        poses.append(T_scaled)
+        stamps.append(int(start_ns + round(k * step / fps * 1e9)))
+    info = {"source": "lidar", "scene_seed": int(scene_seed), "scale": float(scale),
+            "rate_hz": fps / step, "height": height, "beams": sensor.beams,
+            "room_size": [float(x) * scale for x in room.size]}
+    return Sequence(clouds, np.stack(poses), np.asarray(stamps, np.int64), "cegc_lidar", info)
 
 
 def _bunny_pair_graph(root: Path) -> dict[str, list[tuple[str, np.ndarray]]]:

@@ -104,6 +104,10 @@ class SequentialMode:
             values[f"rejected.{reason}"] = stats.count(f"rejected.{reason}")
         for key in ("initial_poses", "initial_poses_ignored"):
             values[key] = stats.count(key)
+        d = self.odometry.distances          # None until the first cloud after a start or reset
+        for key in ("voxel_size", "icp_max_distance", "inlier_distance",
+                    "keyframe_max_translation"):
+            values[f"sequential.{key}"] = "-" if d is None else f"{getattr(d, key):.4g}"
         return {k: str(v) for k, v in values.items()}
 
     # -- outputs (worker thread) ----------------------------------------------------------
@@ -208,6 +212,9 @@ class OdometryWorker(RegistrationWorker):
         except ValueError as err:
             raise Rejected("unusable_cloud", f"cloud refused by the odometry: {err}") from err
         self.mode.frame_time(frame.timings.get("total", float("nan")))
+        if frame.method == "first" and odo.distances is not None:
+            self._info(f"odometry started at stamp {frame.stamp_ns} ns: "
+                       f"{odo.distances.describe()}")
         if not frame.accepted:
             if self._engine_failure:
                 raise Rejected("engine_error", f"cloud not registered: {frame.reason}")

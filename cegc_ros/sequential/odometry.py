@@ -22,6 +22,14 @@ first keyframe):
    ``keyframe_min_overlap`` or it moved more than ``keyframe_max_translation`` /
    ``keyframe_max_rotation`` from the keyframe.
 
+Scale: every distance is derived from the first cloud (after construction or :meth:`reset`)
+where its setting is 0, the default (:func:`derive_distances`): a voxel grid of
+``voxel_ratio`` x the cloud's robust extent, the ICP correspondence distance 4 voxels, the
+inlier distance 1 voxel, the keyframe translation 10 voxels. So the same defaults serve a room
+seen by a depth camera (4 cm grid), an object on a turntable (3 mm) and a LiDAR in a hall
+(1 m); a setting above 0 is used as given. :attr:`KeyframeOdometry.distances` says what is in
+use.
+
 A cloud that neither step 2 nor step 3 can register is rejected: counted, reported, and the
 pose, velocity and path are left as they were (the keyframe may have moved on to the last
 accepted cloud, itself registered), so the next cloud is tried against that keyframe.
@@ -39,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bounding import robust_extent
 from ..config import SequentialConfig
 from ..geometry import finite_cloud
 from . import icp as icp_stage
@@ -51,10 +60,53 @@ MIN_POINTS = 16
 #: 0.15 (the engine's answer 10 cm off), a wrong one (a 10 cm slide along a wall) 0.02.
 PRIOR_RELEASE_FITNESS = 0.05
 
+#: Derived distances (a setting at 0), in voxels of the derived or set grid: the tracking ICP's
+#: correspondence distance (the Kinect-room defaults of earlier rounds: 0.2 m on their 5 cm grid),
+#: the inlier distance (0.05 m) and the keyframe's translation (0.5 m).
+ICP_DISTANCE_VOXELS = 4.0
+INLIER_VOXELS = 1.0
+KEYFRAME_TRANSLATION_VOXELS = 10.0
+
 #: ``global_registration(source_xyz (N, 3), target_xyz (M, 3)) -> result`` with the fields of
 #: :class:`cegc_ros.engine.RegistrationResult` that are read here: ``T_target_source`` (4, 4),
 #: ``valid`` (bool), ``reason`` (str). It may raise ValueError for unusable clouds.
 GlobalRegistration = Callable[[np.ndarray, np.ndarray], Any]
+
+
+@dataclass(frozen=True)
+class Distances:
+    """The metre-valued settings in use: each ``sequential.*`` value, or its derived default
+    where the setting is 0 (:func:`derive_distances`). extent: the robust extent (metres) of
+    the cloud they were derived from."""
+
+    voxel_size: float
+    icp_max_distance: float
+    inlier_distance: float
+    keyframe_max_translation: float
+    extent: float
+
+    def describe(self) -> str:
+        return (f"voxel {self.voxel_size:.4g} m, ICP distance {self.icp_max_distance:.4g} m, "
+                f"inliers {self.inlier_distance:.4g} m, keyframe translation "
+                f"{self.keyframe_max_translation:.4g} m (first cloud's extent {self.extent:.3g} m)")
+
+
+def derive_distances(config: SequentialConfig, extent: float) -> Distances:
+    """The distances for ``config``: a setting above 0 is used as given; at 0 it is derived from
+    the voxel grid, itself ``voxel_ratio x extent`` when ``voxel_size`` is 0 (KISS-ICP derives
+    its voxel from the range the same way). ``extent``: robust extent of the first cloud."""
+    voxel = config.voxel_size if config.voxel_size > 0 else config.voxel_ratio * float(extent)
+    if not voxel > 0:
+        raise ValueError(f"the first cloud has no extent ({extent:g} m): no voxel grid can be "
+                         f"derived; set sequential.voxel_size")
+
+    def pick(value: float, voxels: float) -> float:
+        return float(value) if value > 0 else voxels * voxel
+
+    return Distances(float(voxel), pick(config.icp_max_distance, ICP_DISTANCE_VOXELS),
+                     pick(config.inlier_distance, INLIER_VOXELS),
+                     pick(config.keyframe_max_translation, KEYFRAME_TRANSLATION_VOXELS),
+                     float(extent))
 
 
 @dataclass
@@ -161,6 +213,7 @@ class KeyframeOdometry:
         if T0.shape != (4, 4) or C0.shape != (6, 6) or not (np.isfinite(T0).all() and np.isfinite(C0).all()):
             raise ValueError("initial pose must be a finite (4, 4) and its covariance a finite (6, 6)")
         self._initial = (T0, C0)
+        self.distances: Distances | None = None     # derived at the next first cloud
         self.stats = OdometryStats()
         self.keyframe: Keyframe | None = None
         self._last: Keyframe | None = None                               # last accepted cloud
@@ -175,10 +228,14 @@ class KeyframeOdometry:
         self.config = copy.deepcopy(config)
         if config.path_length != old.path_length:
             self._path = deque(self._path, maxlen=config.path_length)
-        if (config.voxel_size, config.max_range) != (old.voxel_size, old.max_range):
+        if self.distances is None:
+            return
+        before = self.distances
+        self.distances = derive_distances(config, before.extent)
+        if (self.distances.voxel_size, config.max_range) != (before.voxel_size, old.max_range):
             for cloud in {id(c): c for c in (self.keyframe, self._last) if c}.values():
                 cloud.prepared = icp_stage.prepare_cloud(self._in_range(cloud.cloud),
-                                                         config.voxel_size)
+                                                         self.distances.voxel_size)
 
     @property
     def pose(self) -> np.ndarray | None:
@@ -210,10 +267,16 @@ class KeyframeOdometry:
                 raise ValueError(f"cloud stamp {stamp_ns} ns is not after the previous cloud's "
                                  f"({self._last_stamp} ns); reset() to start over")
             points = finite_cloud("cloud", cloud, MIN_POINTS).astype(np.float32)
-            prepared = icp_stage.prepare_cloud(self._in_range(points), cfg.voxel_size)
+            in_range = self._in_range(points)
+            if len(in_range) < MIN_POINTS:
+                raise ValueError(f"cloud has {len(in_range)} points within sequential.max_range "
+                                 f"{cfg.max_range:g} m, at least {MIN_POINTS} are needed")
+            distances = self.distances or derive_distances(cfg, robust_extent(in_range))
+            prepared = icp_stage.prepare_cloud(in_range, distances.voxel_size)
             if len(prepared) < MIN_POINTS:
-                raise ValueError(f"cloud has {len(prepared)} voxels of {cfg.voxel_size} m, at "
-                                 f"least {MIN_POINTS} are needed")
+                raise ValueError(f"cloud has {len(prepared)} voxels of "
+                                 f"{distances.voxel_size:.4g} m, at least {MIN_POINTS} are "
+                                 f"needed")
         except ValueError:
             self.stats.invalid += 1
             raise
@@ -225,6 +288,7 @@ class KeyframeOdometry:
         self.stats.frames += 1
 
         if self.keyframe is None:
+            self.distances = distances
             T0, cov0 = (a.copy() for a in self._initial)
             self._advance(Keyframe(stamp_ns, T0, cov0, points, prepared))
             self._take_keyframe()
@@ -394,23 +458,24 @@ class KeyframeOdometry:
 
     def _icp(self, prepared: icp_stage.PreparedCloud, T_guess: np.ndarray,
              prior: float | None = None) -> icp_stage.IcpResult:
-        cfg, kf = self.config, self.keyframe
-        assert kf is not None
-        return icp_stage.icp(prepared, kf.prepared, T_guess, cfg.icp_max_distance,
-                             cfg.inlier_distance, cfg.icp_max_iterations,
+        cfg, kf, d = self.config, self.keyframe, self.distances
+        assert kf is not None and d is not None
+        return icp_stage.icp(prepared, kf.prepared, T_guess, d.icp_max_distance,
+                             d.inlier_distance, cfg.icp_max_iterations,
                              cfg.icp_prior if prior is None else prior)
 
     def _keyframe_reason(self, res: icp_stage.IcpResult) -> str:
         """Why the registered cloud should become the keyframe ("" when it should not)."""
-        cfg = self.config
+        cfg, d = self.config, self.distances
+        assert d is not None
         T = res.T_target_source
         dist, angle = float(np.linalg.norm(T[:3, 3])), rotation_angle_deg(T)
         if res.fitness < cfg.keyframe_min_overlap:
             return f"keyframe: fitness {res.fitness:.2f} < {cfg.keyframe_min_overlap:.2f}"
         if res.overlap < cfg.keyframe_min_overlap:
             return f"keyframe: overlap {res.overlap:.2f} < {cfg.keyframe_min_overlap:.2f}"
-        if dist > cfg.keyframe_max_translation:
-            return f"keyframe: moved {dist:.2f} m > {cfg.keyframe_max_translation:.2f} m"
+        if dist > d.keyframe_max_translation:
+            return (f"keyframe: moved {dist:.3g} m > {d.keyframe_max_translation:.3g} m")
         if angle > cfg.keyframe_max_rotation:
             return f"keyframe: turned {angle:.1f} deg > {cfg.keyframe_max_rotation:.1f} deg"
         return ""

@@ -17,8 +17,8 @@ Sequences (one of):
 Methods: ``cegc`` (keyframe odometry, CEGC global registration when ICP tracking fails),
 ``icp-only`` (the same without global registration: what CEGC adds) and ``kiss-icp``
 (KISS-ICP 1.x ``KissICP.register_frame`` with ``deskew`` off, ``max_range`` from
-``sequential.max_range`` (else ``--kiss-max-range``) and ``voxel_size`` from
-``sequential.voxel_size``; skipped, with the reason, when the package is not installed).
+``sequential.max_range`` (else ``--kiss-max-range``) and the voxel grid our odometry uses
+(``sequential.voxel_size`` or the one derived from the first cloud); skipped, with the reason, when the package is not installed).
 
 Metrics (:mod:`cegc_ros.sequential.metrics`): ATE from the first frame and after SE(3)
 alignment, RPE (translation %, deg/m) per ``--rpe-lengths``, consecutive-frame errors,
@@ -66,6 +66,7 @@ class MethodRun:
     status: list[str]
     counts: dict[str, int] = field(default_factory=dict)
     skipped: str = ""
+    distances: str = ""         # the metre-valued settings used (odometry: derived or set)
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,6 +171,8 @@ def load_sequence(args: argparse.Namespace) -> Any:
                                  np.array([f.stamp_ns for f in frames], np.int64),
                                  frames[0].frame_id, read_sequence_info(args.bag))
         seq.info["bag"] = str(args.bag)
+    elif args.lidar is not None:
+        seq = sequences.make_lidar_sequence(args.lidar, args.clouds, scale=args.scale)
     elif args.scene is not None:
         seq = sequences.make_room_sequence(
             args.scene, args.clouds, frame_step=args.frame_step,
@@ -219,7 +222,21 @@ def run_odometry(name: str, seq: Any, config: Any, registration: Any = None,
     st = odo.stats
     return MethodRun(name, poses, latency, status, {
         "keyframes": st.keyframes, "tracked": st.tracked, "recoveries": st.recoveries,
-        "rejected": st.rejected, "invalid": st.invalid})
+        "rejected": st.rejected, "invalid": st.invalid},
+        distances=odo.distances.describe() if odo.distances is not None else "")
+
+
+def derived_voxel(seq: Any, config: Any) -> float:
+    """The voxel grid our odometry uses on ``seq`` (``sequential.voxel_size``, or derived from
+    the first cloud as :class:`KeyframeOdometry` derives it): KISS-ICP gets the same one."""
+    from cegc_ros.bounding import robust_extent
+    from cegc_ros.sequential.odometry import derive_distances
+
+    first = np.asarray(seq.clouds[0], np.float64)
+    first = first[np.isfinite(first).all(1)]
+    if config.max_range > 0:
+        first = first[(first ** 2).sum(1) <= config.max_range ** 2]
+    return derive_distances(config, robust_extent(first)).voxel_size
 
 
 def kiss_icp_available() -> bool:
@@ -254,7 +271,8 @@ def run_kiss_icp(seq: Any, voxel_size: float, max_range: float,
         poses[k] = odo.last_pose
     return MethodRun("kiss-icp", poses, latency, ["kiss"] * K,
                      {"keyframes": 0, "tracked": K - 1, "recoveries": 0, "rejected": 0,
-                      "invalid": 0})
+                      "invalid": 0},
+                     distances=f"voxel {voxel_size:.4g} m, max range {max_range:g} m")
 
 
 def _progress(it: Iterable[int], on: bool, name: str) -> Iterable[int]:
@@ -272,7 +290,8 @@ def score(gt: np.ndarray, run: MethodRun, lengths: list[float]) -> dict[str, Any
     from cegc_ros.sequential import metrics
 
     lat = run.latency[np.isfinite(run.latency)] * 1000.0
-    out: dict[str, Any] = {"method": run.name, "skipped": run.skipped} | run.counts
+    out: dict[str, Any] = ({"method": run.name, "skipped": run.skipped} | run.counts
+                           | {"distances": run.distances})
     if run.skipped:
         return out
     out["ate"] = metrics.ate(gt, run.poses)
@@ -320,7 +339,9 @@ def report_markdown(summary: dict[str, Any]) -> str:
               "ATE (RMS position error) 'first' from the first frame, 'aligned' after SE(3) "
              "alignment; rot err: mean rotation error from the first frame; coverage: share "
              "of clouds with a pose."), "",
-            *lines, "", f"Command: `{summary['command']}`", "",
+            *lines, "",
+            *[f"- {r['method']}: {r['distances']}" for r in rows if r.get("distances")], "",
+            f"Command: `{summary['command']}`", "",
             f"Machine: {summary['machine']}", ""]
     return "\n".join(text)
 
@@ -412,10 +433,15 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("bag", nargs="?", type=Path, help="sequence bag (/cegc/cloud + ground truth)")
     src.add_argument("--scene", type=int, help="render a sequence through synthetic room SEED")
+    src.add_argument("--lidar", type=int, metavar="SEED",
+                     help="a LiDAR sequence through synthetic room SEED (one sweep per cloud)")
     src.add_argument("--bunny", type=Path, help="bunny scans folder (../shared/data/real/bunny)")
     p.add_argument("--trajectory", choices=("robot", "handheld"), default="robot",
                    help="camera motion of --scene (default robot)")
-    p.add_argument("--clouds", type=int, default=150, help="clouds of --scene (default 150)")
+    p.add_argument("--clouds", type=int, default=150,
+                   help="clouds of --scene or --lidar (default 150)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="--lidar: every length times this (10: a 30-50 m hall; default 1)")
     p.add_argument("--frame-step", type=int, default=3,
                    help="trajectory frames (30 fps) between clouds of --scene (default 3: 10 Hz)")
     p.add_argument("--frames-per-cloud", type=int, default=1,
@@ -475,9 +501,10 @@ def run_cli(args: argparse.Namespace, argv: list[str]) -> tuple[dict[str, Any], 
             runs.append(run_odometry("icp-only", seq, cfg, None, progress))
         else:
             max_range = cfg.max_range if cfg.max_range > 0 else args.kiss_max_range
-            runs.append(run_kiss_icp(seq, cfg.voxel_size, max_range, progress))
+            runs.append(run_kiss_icp(seq, derived_voxel(seq, cfg), max_range, progress))
     from cegc_ros.sequential.metrics import path_length
     name = (f"bag {seq.info.get('bag')}" if args.bag is not None else
+            f"lidar {args.lidar} (scale {args.scale:g})" if args.lidar is not None else
             f"room {args.scene} ({args.trajectory})" if args.scene is not None else "bunny")
     summary = {
         "sequence": {"name": name, "clouds": len(seq), "path_length_m": path_length(gt),

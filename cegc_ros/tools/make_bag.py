@@ -2,12 +2,18 @@
 
     cegc-make-bag --protocol 7scenes --split test --pairs 100 --seed 0 --out bags/7scenes_test
     cegc-make-bag --protocol views --split test --pairs 100 --out bags/views_test
+    cegc-make-bag --clouds scan_000.npy scan_001.pcd ... --rate 10 --out bags/my_scans
 
 Pair i depends only on (protocol, split, seed, i). 7scenes / fragments / modelnet: see
 cegc_ros.data.protocols.make_pair. views / views-lidar: different-view Kinect / LiDAR fragment
 pairs of the rich rooms (cegc_ros.data.views.iter_view_pairs), rooms SEED * 10000, +1, ... of
 the split, every room scanned with that sensor (a pair cache of the split holds the same pairs
 for its rooms of that sensor).
+
+``--clouds FILE ...``: your own clouds (.npy (N, 3+), or .ply / .pcd / .xyz ... through Open3D,
+as cegc-register reads them) into a sequence bag, one cloud per file in the given order,
+``--rate`` Hz apart, frame ``--frame-id``: ``cegc-replay`` plays it onto the node's ``cloud``
+(sequential mode) and ``cegc-eval-seq`` can read it (without ground truth it reports none).
 """
 
 from __future__ import annotations
@@ -25,15 +31,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cegc-make-bag",
         description="Generate synthetic registration pairs (with ground truth) into a rosbag2.")
-    p.add_argument("--protocol", required=True, choices=PROTOCOLS,
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--protocol", choices=PROTOCOLS,
                    help="7scenes (RIENet/FMR crops of a fragment), fragments (two fragments of "
                         "a scene, metres), modelnet (RPM-Net crops of primitive objects), "
                         "views / views-lidar (different-view Kinect / LiDAR fragment pairs of "
                         "the rich rooms, metres, overlap 0.1-0.9)")
-    p.add_argument("--split", required=True, choices=("train", "val", "test"),
+    src.add_argument("--clouds", nargs="+", type=Path, metavar="FILE",
+                     help="your own cloud files, one message each in this order, into a "
+                          "sequence bag (/cegc/cloud) instead of generated pairs")
+    p.add_argument("--rate", type=float, default=10.0,
+                   help="--clouds: messages per second of the bag's stamps (default 10)")
+    p.add_argument("--frame-id", default="sensor",
+                   help="--clouds: header frame_id of the clouds (default sensor)")
+    p.add_argument("--split", choices=("train", "val", "test"),
                    help="scene/object/room seed range (disjoint); val exists for the views "
                         "protocols only")
-    p.add_argument("--pairs", required=True, type=int, help="number of pairs (>= 1)")
+    p.add_argument("--pairs", type=int, help="number of pairs (>= 1)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed, 0..999999 (default 0)")
     p.add_argument("--out", required=True, type=Path,
                    help="bag directory to create (must not exist, unless --overwrite)")
@@ -51,7 +65,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.pairs < 1:
+    if args.clouds is None and (args.split is None or args.pairs is None):
+        parser.error("--protocol needs --split and --pairs")
+    if args.clouds is not None and (args.split or args.pairs or args.noise):
+        parser.error("--clouds takes no --split, --pairs or --noise")
+    if not args.rate > 0:
+        parser.error(f"--rate must be > 0, got {args.rate}")
+    if args.clouds is None and args.pairs < 1:
         parser.error(f"--pairs must be >= 1, got {args.pairs}")
     if not 0 <= args.seed <= 999_999:
         parser.error(f"--seed must be in 0..999999, got {args.seed}")
@@ -64,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
                          f"not replaced")
     if not args.out.parent.exists():
         parser.error(f"--out parent directory {args.out.parent} does not exist")
+    if args.clouds is not None:
+        return _write_clouds(args)
     if args.noise and args.protocol != "modelnet":
         parser.error("--noise applies to --protocol modelnet only")
     if not 0.0 <= args.noise <= 0.05:
@@ -104,6 +126,36 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         bar.close()
     print(f"wrote {n} {args.protocol}/{args.split} pairs (seed {args.seed}) to {args.out} "
+          f"[{args.storage}]")
+    return 0
+
+
+def _write_clouds(args: argparse.Namespace) -> int:
+    """--clouds: the files, in order, as a sequence bag without ground truth."""
+    import numpy as np
+
+    from cegc_ros.data.bag import BagError, write_sequence
+    from cegc_ros.data.sequences import Sequence
+    from cegc_ros.tools.register_files import InputError, read_cloud
+
+    try:
+        clouds = [read_cloud(path).astype(np.float32) for path in args.clouds]
+    except InputError as err:
+        print(f"cegc-make-bag: error: {err}", file=sys.stderr)
+        return 1
+    start_ns = 1_700_000_000 * 10**9
+    stamps = start_ns + np.round(np.arange(len(clouds)) * 1e9 / args.rate).astype(np.int64)
+    seq = Sequence(clouds, None, stamps, args.frame_id,
+                   {"source": "files", "files": [str(p) for p in args.clouds]})
+    if args.out.exists():          # --overwrite of a bag, checked above
+        import shutil
+        shutil.rmtree(args.out)
+    try:
+        n = write_sequence(args.out, seq, storage=args.storage)
+    except BagError as err:
+        print(f"cegc-make-bag: error: {err}", file=sys.stderr)
+        return 1
+    print(f"wrote {n} clouds ({args.rate:g} Hz, frame {args.frame_id}) to {args.out} "
           f"[{args.storage}]")
     return 0
 

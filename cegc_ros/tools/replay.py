@@ -1,6 +1,7 @@
 """cegc-replay: play a bag into a running register_node and record the poses it returns.
 
-    cegc-replay BAG [--rate R] [--lockstep] [--out FILE.json|FILE.csv] [--timeout S]
+    cegc-replay BAG [--rate R] [--lockstep] [--loop | --loops N] [--out FILE.json|FILE.csv]
+                    [--timeout S]
                     [--node-name register_node] [--node-namespace /]
                     [--source-topic T] [--target-topic T] [--pose-topic T]
                     [--remap FROM:=TO ...] [--start-offset S]
@@ -17,11 +18,16 @@ A pair bag's ``/cegc/source`` and ``/cegc/target`` messages are published as the
 (serialized CDR, no decoding) onto the node's ``source_cloud`` / ``target_cloud`` with
 RELIABLE QoS, paced by the bag's time stamps (``--rate 2`` plays twice as fast). Every
 ``~/pose`` the node publishes is matched to its pair by header stamp and written next to the
-ground truth from ``/cegc/ground_truth``. ``--lockstep`` publishes the next pair only when the
-node has answered the previous one (a pose, or a rejection seen on /diagnostics), which is
-what an accuracy evaluation wants: no pair is dropped because the node was busy. A node that
-dies (its input subscriptions end) or leaves a pair unanswered for ``--wait`` seconds (default
-30) ends the replay with one line and exit status 1.
+ground truth from ``/cegc/ground_truth``. A cloud stream is answered on ``~/odometry``
+(sequential mode): each odometry pose is matched to its cloud, next to a sequence bag's
+ground truth relative to the first cloud played. ``--lockstep`` publishes the next pair (or
+cloud) only when the node has answered the previous one (a pose, or a rejection seen on
+/diagnostics), which is what an accuracy evaluation wants: nothing is dropped because the node
+was busy. A node that dies (its input subscriptions end) or leaves an item unanswered for
+``--wait`` seconds (default 30) ends the replay with one line and exit status 1.
+``--loops N`` plays the bag N times and ``--loop`` until Ctrl-C, as ``ros2 bag play --loop``;
+before each repeat the node's ``~/reset`` is called, so a sequential-mode node starts a new
+odometry instead of refusing the repeated stamps (a node without the service: exit 1).
 
 Start the node with ``input.reliable:=true`` for replay; with the default sensor-data QoS
 (best effort) large clouds can be lost on the way. Unless ROS_AUTOMATIC_DISCOVERY_RANGE is
@@ -60,6 +66,16 @@ def _positive(text: str) -> float:
     return value
 
 
+def _at_least_one(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cegc-replay``: 0 on success, 1 with one line on stderr when the bag or
     the node is the problem, 2 for a usage error."""
@@ -68,7 +84,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=_positive, default=1.0,
                     help="playback speed factor (default 1)")
     ap.add_argument("--lockstep", action="store_true",
-                    help="publish each pair only after the node answered the previous one")
+                    help="publish each pair (or cloud of a stream) only after the node answered "
+                         "the previous one: its pose (odometry) or a counted rejection")
+    loop = ap.add_mutually_exclusive_group()
+    loop.add_argument("--loop", action="store_const", const=0, dest="loops",
+                      help="play the bag again and again until interrupted (Ctrl-C), calling "
+                           "the node's ~/reset before each repeat")
+    loop.add_argument("--loops", type=_at_least_one, metavar="N",
+                      help="play the bag N times, with ~/reset before each repeat (default 1)")
+    ap.set_defaults(loops=1)
     ap.add_argument("--out", help="write records here (.json or .csv)")
     ap.add_argument("--timeout", type=_positive, default=10.0,
                     help="seconds to wait for outstanding poses after the last pair")
@@ -108,11 +132,12 @@ def main(argv: list[str] | None = None) -> int:
                             target_topic=args.target_topic, pose_topic=args.pose_topic,
                             pair_timeout=args.wait, progress=sys.stderr.isatty(),
                             fastdds_profile=args.fastdds_profile, remaps=remaps,
-                            start_offset=args.start_offset)
+                            start_offset=args.start_offset, loops=args.loops)
         info = summary(result)
         if args.out:
             write_records(result, args.out, {"bag": str(args.bag), "rate": args.rate,
-                                             "lockstep": args.lockstep, "summary": info})
+                                             "lockstep": args.lockstep, "loops": args.loops,
+                                             "summary": info})
     except (BagError, ReplayError, ValueError, OSError) as err:
         print(f"cegc-replay: {' '.join(str(err).split())}", file=sys.stderr)
         return 1
