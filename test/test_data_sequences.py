@@ -188,3 +188,21 @@ def test_sequence_bag_errors(tmp_path, room_sequence):
     backwards = Q.Sequence(room_sequence.clouds[:2], None, room_sequence.stamps_ns[1::-1])
     with pytest.raises(B.BagError, match="increase"):
         B.write_sequence(tmp_path / "back", backwards)
+
+
+def test_lidar_sequence_is_level_sweeps_and_scale_grows_every_length():
+    from cegc_ros.data.sequences import make_lidar_sequence
+
+    small = make_lidar_sequence(0, 3)
+    big = make_lidar_sequence(0, 3, scale=10.0)
+    assert np.diff(small.stamps_ns).tolist() == [10**8, 10**8]           # 10 Hz
+    for T in small.poses:                                                  # z up, level
+        np.testing.assert_allclose(T[:3, 2], [0.0, 0.0, 1.0], atol=1e-12)
+        assert T[2, 3] == pytest.approx(1.2)
+    step = np.linalg.norm(small.poses[1][:3, 3] - small.poses[0][:3, 3])
+    assert step == pytest.approx(0.04, rel=0.05)                           # 0.4 m/s
+    np.testing.assert_allclose(big.poses[:, :3, 3], 10.0 * small.poses[:, :3, 3])
+    np.testing.assert_allclose(big.clouds[0], 10.0 * small.clouds[0], rtol=1e-6)
+    r = np.linalg.norm(small.clouds[0], axis=1)
+    assert len(small.clouds[0]) > 10_000 and r.min() >= 0.5                 # the sensor's min range
+    assert big.info["room_size"] == pytest.approx([10 * x for x in small.info["room_size"]])
