@@ -36,6 +36,11 @@ What it does, each step skipped when already done, one progress line per step th
    ``AMENT_PREFIX_PATH``, DDS kept on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``)
    and a random ``ROS_DOMAIN_ID`` in 1..100 unless one is set, so parallel runs do not talk to
    each other. ``demo`` and ``test`` print the domain they use.
+4. ``tf2_msgs`` (not on any package index), so that sequential mode publishes ``/tf``: generated
+   from its one message definition by rosidl's generators (wheels in ``.venv``) and compiled
+   with gcc into ``.venv/tf2_msgs`` (``scripts/build_tf2_msgs.sh``; about 5 s, 0.3 MB, once
+   per venv); the job gets it on ``PYTHONPATH``, ``LD_LIBRARY_PATH`` and ``AMENT_PREFIX_PATH``.
+   Without gcc or when the build fails, one line says so and jobs run without ``/tf``.
 """
 
 from __future__ import annotations
@@ -390,6 +395,36 @@ def checkout_domain_id(root: Path | None = None) -> int:
     return 1 + int(digest, 16) % 100
 
 
+TF2_PREFIX = VENV / "tf2_msgs"
+TF2_SCRIPT = ROOT / "scripts" / "build_tf2_msgs.sh"
+
+
+def ensure_tf2_msgs() -> Path | None:
+    """Build tf2_msgs into TF2_PREFIX once (see the module docstring, step 4); its prefix, or
+    None (one logged line) when it cannot be built here."""
+    done = TF2_PREFIX / ".built"
+    if done.is_file():
+        return TF2_PREFIX
+    if not TF2_SCRIPT.is_file() or shutil.which("gcc") is None or shutil.which("g++") is None:
+        log("tf2_msgs not built (needs gcc, g++ and scripts/build_tf2_msgs.sh): no /tf")
+        return None
+    log("building tf2_msgs (rosidl + gcc, seconds) -> .venv/tf2_msgs")
+    shutil.rmtree(TF2_PREFIX, ignore_errors=True)
+    with open(LOG, "a") as out:
+        rc = subprocess.call(["bash", str(TF2_SCRIPT), str(venv_python()), str(TF2_PREFIX)],
+                             stdout=None if VERBOSE else out, stderr=subprocess.STDOUT)
+    if rc != 0:
+        log(f"tf2_msgs build failed (exit {rc}; see {LOG}): jobs run without /tf")
+        return None
+    done.write_text("1\n")
+    return TF2_PREFIX
+
+
+def _prepend(env: dict[str, str], key: str, *paths: str) -> None:
+    rest = [p for p in env.get(key, "").split(os.pathsep) if p and p not in paths]
+    env[key] = os.pathsep.join([*paths, *rest])
+
+
 def job_environment(base: dict[str, str] | None = None, *,
                     localhost: bool = True, stable_domain: bool = False) -> dict[str, str]:
     """The environment for a job in .venv (``base`` defaults to os.environ). Without a
@@ -411,6 +446,13 @@ def job_environment(base: dict[str, str] | None = None, *,
         env["ROS_DOMAIN_ID"] = str(checkout_domain_id() if stable_domain
                                    else random.SystemRandom().randint(1, 100))
     env["CEGC_ROS_BOOTSTRAP"] = "1"
+    tf2 = TF2_PREFIX if (TF2_PREFIX / ".built").is_file() else None
+    if tf2 is not None:
+        site = sorted(tf2.glob("lib/python3*/site-packages"))
+        if site:
+            _prepend(env, "PYTHONPATH", str(site[0]))
+        _prepend(env, "LD_LIBRARY_PATH", str(tf2 / "lib"), str(VENV / "lib"))
+        _prepend(env, "AMENT_PREFIX_PATH", str(tf2))
     return allocator_environment(env, None if env.get("CEGC_NO_JEMALLOC") else jemalloc_path())
 
 
@@ -444,12 +486,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         ensure_system_libraries()
         ensure_venv()
+        ensure_tf2_msgs()
         env = job_environment(localhost=job == "test", stable_domain=job == "env")
         if job == "setup":
             return 0
         if job == "env":
             keys = ("VIRTUAL_ENV", "PATH", "AMENT_PREFIX_PATH", "ROS_AUTOMATIC_DISCOVERY_RANGE",
-                    "ROS_DOMAIN_ID", "LD_PRELOAD", "MALLOC_CONF")
+                    "ROS_DOMAIN_ID", "LD_PRELOAD", "MALLOC_CONF", "PYTHONPATH",
+                    "LD_LIBRARY_PATH")
             for key in keys:
                 if key in env:
                     print(f"export {key}={shlex.quote(env[key])}")

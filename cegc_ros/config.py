@@ -262,7 +262,8 @@ class SequentialConfig:
     path_length: int = field(default=1000, metadata=_meta(
         "Poses kept in ~/path (the oldest are dropped).", 1, 1_000_000))
     publish_tf: bool = field(default=True, metadata=_meta(
-        "Publish odom_frame -> cloud frame on /tf (only where tf2_msgs is installed).",
+        "Publish odom_frame -> cloud frame on /tf (where tf2_msgs is importable: a ROS install, or "
+        "scripts/build_tf2_msgs.sh, which the bootstrap runs).",
         dynamic=False))
 
 

@@ -5,8 +5,9 @@
 cloud's sensor frame), as tf2 expects. Input that is not a finite rigid transform raises
 :class:`ValueError` (the same checks as :func:`msg_adapters.pose.matrix_to_pose`).
 
-``tf2_msgs`` (the ``/tf`` message) is not on PyPI; :func:`tf_message_class` says whether it is
-installed, so that the node publishes ``/tf`` only where it can.
+``tf2_msgs`` (the ``/tf`` message) is not on PyPI (``scripts/build_tf2_msgs.sh`` generates it;
+the bootstrap does); :func:`tf_message_class` says whether it is importable, so that the node
+publishes ``/tf`` only where it can.
 """
 
 from __future__ import annotations
@@ -71,7 +72,8 @@ def transform_stamped(T_parent_child: Any, header: Header, child_frame_id: str) 
 
 
 def tf_message_class() -> type | None:
-    """``tf2_msgs.msg.TFMessage`` where tf2_msgs is installed (a full ROS 2 install), else None."""
+    """``tf2_msgs.msg.TFMessage`` where tf2_msgs is importable (a ROS 2 install, or the package
+    ``scripts/build_tf2_msgs.sh`` generates, which the bootstrap puts on the path), else None."""
     if importlib.util.find_spec("tf2_msgs") is None:
         return None
     return importlib.import_module("tf2_msgs.msg").TFMessage

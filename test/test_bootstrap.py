@@ -25,8 +25,9 @@ def test_bootstrap_imports_only_the_standard_library():
     assert modules <= set(sys.stdlib_module_names), modules - set(sys.stdlib_module_names)
 
 
-def test_job_environment_keeps_dds_local_and_picks_a_domain(monkeypatch):
+def test_job_environment_keeps_dds_local_and_picks_a_domain(monkeypatch, tmp_path):
     monkeypatch.setattr(bootstrap, "jemalloc_path", lambda: None)
+    monkeypatch.setattr(bootstrap, "TF2_PREFIX", tmp_path / "no_tf2_msgs")
     base = {"PATH": "/usr/bin", "AMENT_PREFIX_PATH": f"/opt/ros/jazzy:{bootstrap.VENV}",
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
     env = bootstrap.job_environment(base)
@@ -39,6 +40,28 @@ def test_job_environment_keeps_dds_local_and_picks_a_domain(monkeypatch):
     env = bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="42"), localhost=False)
     assert env["ROS_DOMAIN_ID"] == "42" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
     assert bootstrap.job_environment(dict(base, ROS_DOMAIN_ID="0"))["ROS_DOMAIN_ID"] != "0"
+
+
+def test_a_built_tf2_msgs_is_on_the_jobs_paths_and_a_missing_compiler_is_one_line(
+        monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(bootstrap, "jemalloc_path", lambda: None)
+    prefix = tmp_path / "tf2_msgs"
+    site = prefix / "lib" / "python3.11" / "site-packages"
+    site.mkdir(parents=True)
+    monkeypatch.setattr(bootstrap, "TF2_PREFIX", prefix)
+    base = {"PATH": "/usr/bin", "PYTHONPATH": "/mine", "LD_LIBRARY_PATH": "/opt/lib"}
+    assert "PYTHONPATH" not in bootstrap.job_environment({"PATH": "/usr/bin"})   # not built
+    (prefix / ".built").write_text("1\n")
+    env = bootstrap.job_environment(base)
+    assert env["PYTHONPATH"] == f"{site}:/mine"
+    assert env["LD_LIBRARY_PATH"] == f"{prefix / 'lib'}:{bootstrap.VENV / 'lib'}:/opt/lib"
+    assert env["AMENT_PREFIX_PATH"].split(":")[0] == str(prefix)
+    assert bootstrap.ensure_tf2_msgs() == prefix                    # built: nothing to do
+    (prefix / ".built").unlink()
+    monkeypatch.setattr(bootstrap.shutil, "which", lambda name, path=None: None)
+    assert bootstrap.ensure_tf2_msgs() is None
+    assert capsys.readouterr().err.strip() == (
+        "[bootstrap] tf2_msgs not built (needs gcc, g++ and scripts/build_tf2_msgs.sh): no /tf")
 
 
 def test_env_prints_the_same_domain_every_time_in_one_checkout(monkeypatch, tmp_path):

@@ -151,7 +151,11 @@ def test_sequence_gives_odometry_near_ground_truth_and_skips_a_bad_cloud(seq_nod
     second_cov = odometry_to_matrix(odom[int(seq.stamps_ns[1])])[1]
     assert np.all(np.diag(cov) > 0) and np.trace(cov) > np.trace(second_cov)
 
-    # ~/path: bounded, newest last, in odom; its last pose is the last odometry.
+    # ~/path: bounded, newest last, in odom; its last pose is the last odometry. (Published
+    # after ~/odometry: wait for the path of the last cloud.)
+    last_stamp = int(seq.stamps_ns[-1])
+    assert rh.wait_for(lambda: path_to_matrices(probe.outputs("path")[-1])[-1][0] == last_stamp,
+                       10.0)
     path = probe.outputs("path")[-1]
     assert path.header.frame_id == "odom"
     poses = path_to_matrices(path)
@@ -185,10 +189,17 @@ def test_tf_is_published_where_tf2_msgs_is_installed(seq_node, sequence):
     if tf_message_class() is None:
         pytest.skip("tf2_msgs is not installed (not on PyPI): /tf is not published; "
                     "msg_adapters.transform.transform_stamped is unit-tested in test_nav_tf.py")
+    from msg_adapters.nav import odometry_to_matrix, time_to_ns
+    from msg_adapters.transform import transform_to_matrix
+
     _, probe = seq_node
-    assert rh.wait_for(lambda: len(probe.outputs("tf")) > 0, 30.0)
-    t = probe.outputs("tf")[-1].transforms[0]
-    assert t.header.frame_id == "odom" and t.child_frame_id == FRAME_ID
+    assert rh.wait_for(lambda: len(probe.outputs("tf")) >= NUM_CLOUDS, 30.0)
+    odom = probe.by_stamp("odometry")
+    for msg in probe.outputs("tf"):          # one transform per odometry message, the same pose
+        (t,) = msg.transforms
+        assert t.header.frame_id == "odom" and t.child_frame_id == FRAME_ID
+        T_odom = odometry_to_matrix(odom[time_to_ns(t.header.stamp)])[0]
+        np.testing.assert_allclose(transform_to_matrix(t.transform), T_odom, atol=1e-9)
 
 
 def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node, sequence,
@@ -202,7 +213,13 @@ def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node,
     from cegc_ros.metrics import rotation_error_deg
     from cegc_ros.replay import replay_bag, summary
 
+    from std_srvs.srv import Trigger
+
     proc, probe = seq_node
+    client = probe.create_client(Trigger, "/register_node/reset")   # a new odometry first
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    assert rh.wait_for(future.done, 10.0) and future.result().success
     resets = int(_fresh_diag(probe)["resets"])
     later = dataclasses.replace(sequence, stamps_ns=sequence.stamps_ns + 1000 * 10**9)
     bag = tmp_path / "seq_bag"
@@ -212,15 +229,14 @@ def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node,
     assert [r.loop for r in result.records] == [0] * NUM_CLOUDS + [1] * NUM_CLOUDS
     assert all(r.T_est is not None for r in result.records), summary(result)
     first, second = result.records[:NUM_CLOUDS], result.records[NUM_CLOUDS:]
-    # The first play continues the odometry the earlier tests left; the second starts anew.
-    np.testing.assert_allclose(second[0].T_est, np.eye(4), atol=1e-9)
-    T0_inv = np.linalg.inv(first[0].T_est)
+    np.testing.assert_allclose(first[0].T_est, np.eye(4), atol=1e-9)     # after our reset
+    np.testing.assert_allclose(second[0].T_est, np.eye(4), atol=1e-9)    # after the replay's
     for a, b in zip(first, second):
-        np.testing.assert_allclose(T0_inv @ np.asarray(a.T_est), b.T_est, atol=5e-3)
+        np.testing.assert_allclose(a.T_est, b.T_est, atol=1e-6)
     T, G = np.asarray(second[-1].T_est), np.asarray(second[-1].T_gt)     # gt from the bag
     assert np.linalg.norm(T[:3, 3] - G[:3, 3]) < 0.05
     assert rotation_error_deg(G[:3, :3], T[:3, :3]) < 1.5
     d = _fresh_diag(probe)
-    assert int(d["resets"]) == resets + 1
+    assert int(d["resets"]) == resets + 1                          # the replay's, between plays
     assert float(d["sequential.voxel_size"]) > 0                   # derived from the first cloud
     assert proc.poll() is None
