@@ -307,7 +307,8 @@ def test_replay_records_poses_next_to_ground_truth(ros, pairs, tmp_path):
     out = tmp_path / "replay.csv"
     assert replay_main([str(bag), "--rate", "4", "--out", str(out)]) == 0
     rows = out.read_text().splitlines()
-    assert len(rows) == 4 and rows[0].startswith("index,stamp_ns,latency_s,est_00")
+    assert len(rows) == 4 and rows[0].startswith("index,loop,stamp_ns,latency_s,est_00")
+    assert all(row.split(",")[1] == "0" for row in rows[1:])              # one play
 
 
 def test_sigterm_exits_cleanly(ros):
