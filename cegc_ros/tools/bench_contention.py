@@ -1,6 +1,6 @@
 """Benchmark: engine latency beside 0, 1 and 2 CPU-bound processes, per thread setting.
 
-    python -m cegc_ros.tools.bench_contention [--settings default,omp1,passive,omp1_o3d1,passive_o3d1]
+    python -m cegc_ros.tools.bench_contention [--settings api,ransac,default,omp1,passive,...]
         [--hogs 0,1,2] [--pairs 8] [--rounds 2] [--size 0] [--out runs/contention.json]
 
 A robot's CPU is shared with SLAM, drivers and planners. Each (setting, hogs, round) starts
@@ -17,6 +17,11 @@ Settings (environment of the engine process, plus Open3D's thread limit):
   passive       OMP_WAIT_POLICY=PASSIVE: OpenMP threads sleep instead of spinning
   omp1_o3d1     OMP_NUM_THREADS=1 and open3d.utility.set_max_threads(1) (Open3D uses TBB)
   passive_o3d1  OMP_WAIT_POLICY=PASSIVE and open3d.utility.set_max_threads(1)
+  api           nothing set, and the engine made as a user's script makes it:
+                ``from cegc_ros.engine import Registrar; Registrar.from_checkpoint()`` (what
+                the engine sets itself on import is what it gets)
+  ransac        the peer: Open3D RANSAC+FPFH (cegc_ros.baselines, its defaults) on the same
+                pairs, nothing set, so the engine's slow-down is compared with the peer's
 
 Prints a table of median latency (ms) and the slow-down against the same setting without
 hogs, with the machine's load average. Errors: one line, exit code 1 (2 for usage).
@@ -46,6 +51,8 @@ SETTINGS: dict[str, tuple[dict[str, str], int]] = {
     "passive": ({"OMP_WAIT_POLICY": "PASSIVE"}, 0),
     "omp1_o3d1": ({"OMP_NUM_THREADS": "1"}, 1),
     "passive_o3d1": ({"OMP_WAIT_POLICY": "PASSIVE"}, 1),
+    "api": ({}, 0),
+    "ransac": ({}, 0),
 }
 #: Variables that would change what a setting means; removed from the child's environment.
 THREAD_VARS = ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME",
@@ -56,30 +63,43 @@ class BenchError(RuntimeError):
     """A child failed or the arguments make no sense."""
 
 
-def child(pairs: int, size: int, o3d_threads: int) -> int:
-    """The engine process of one measurement: prints one JSON line of per-pair seconds."""
-    import torch
-
-    from cegc_ros.data.protocols import make_pairs
+def _runner(setting: str) -> Any:
+    """``register(source, target)`` of the setting: the peer, the engine as a script makes it,
+    or the engine as the node's engine process makes it."""
+    if setting == "ransac":
+        from cegc_ros import baselines
+        baselines.load_open3d()
+        return lambda src, tgt: baselines.register("ransac", src, tgt)
+    if setting == "api":
+        from cegc_ros.engine import Registrar
+        return Registrar.from_checkpoint(device="cpu").register
     from cegc_ros.node.engine_process import load_registrar
     from cegc_ros.node.params import SECTIONS
+    return load_registrar(SECTIONS["preprocess"](), SECTIONS["engine"](device="cpu")).register
+
+
+def child(pairs: int, size: int, o3d_threads: int, setting: str = "default") -> int:
+    """The process of one measurement: prints one JSON line of per-pair seconds."""
+    from cegc_ros.data.protocols import make_pairs
     from cegc_ros.tools.bench_node import densify
 
     if o3d_threads:
         import open3d as o3d
         o3d.utility.set_max_threads(o3d_threads)
-    reg = load_registrar(SECTIONS["preprocess"](), SECTIONS["engine"](device="cpu"))
+    register = _runner(setting)
+    import torch
+
     data = make_pairs("7scenes", "test", pairs)
     if size:
         data = [(densify(p.source, size, 1), densify(p.target, size, 2)) for p in data]
     else:
         data = [(p.source, p.target) for p in data]
     for src, tgt in data[:2]:                       # warm-up
-        reg.register(src, tgt)
+        register(src, tgt)
     times = []
     for src, tgt in data:
         t0 = time.perf_counter()
-        reg.register(src, tgt)
+        register(src, tgt)
         times.append(time.perf_counter() - t0)
     print(json.dumps({"times": times, "torch_threads": torch.get_num_threads()}), flush=True)
     return 0
@@ -99,7 +119,8 @@ def measure(setting: str, hogs: int, pairs: int, size: int) -> dict[str, Any]:
     try:
         load0 = os.getloadavg()[0]
         out = subprocess.run([sys.executable, "-m", "cegc_ros.tools.bench_contention", "--child",
-                              str(pairs), str(size), str(o3d_threads)], env=env, cwd=str(REPO),
+                              str(pairs), str(size), str(o3d_threads), setting], env=env,
+                             cwd=str(REPO),
                              capture_output=True, text=True, check=False, timeout=3600)
     finally:
         for p in procs:
@@ -116,7 +137,7 @@ def measure(setting: str, hogs: int, pairs: int, size: int) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--child"]:
-        return child(int(argv[1]), int(argv[2]), int(argv[3]))
+        return child(int(argv[1]), int(argv[2]), int(argv[3]), argv[4])
     ap = OneLineParser(prog="bench_contention", description=__doc__.split("\n\n")[0])
     ap.add_argument("--settings", default=",".join(SETTINGS))
     ap.add_argument("--hogs", default="0,1,2", help="CPU-bound processes beside the engine")
