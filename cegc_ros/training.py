@@ -216,11 +216,14 @@ class PairStream(torch.utils.data.IterableDataset):
     """Training pairs from ``start`` on; pair ``step`` comes from a generator seeded by
     (seed, rank, step), so the stream is the same with or without DataLoader workers and
     after a resume. With W workers, worker k prepares steps start + k, start + k + W, ...;
-    the DataLoader takes them round-robin, i.e. in step order."""
+    the DataLoader takes them round-robin, i.e. in step order. ``curriculum_offset``: pairs the
+    network saw before this run (a warm start), added to the step to pick the curriculum stage."""
 
-    def __init__(self, sampler: PairSampler, cfg: TrainConfig, rank: int, start: int) -> None:
+    def __init__(self, sampler: PairSampler, cfg: TrainConfig, rank: int, start: int,
+                 curriculum_offset: int = 0) -> None:
         super().__init__()
         self.sampler, self.cfg, self.rank, self.start = sampler, cfg, rank, start
+        self.offset = int(curriculum_offset)
 
     def __iter__(self) -> Any:
         info = torch.utils.data.get_worker_info()
@@ -228,7 +231,7 @@ class PairStream(torch.utils.data.IterableDataset):
         step = self.start + k
         while True:
             rng = np.random.default_rng([self.cfg.seed, self.rank, step])
-            yield self.sampler.sample(rng, _stage(self.cfg, step))
+            yield self.sampler.sample(rng, _stage(self.cfg, step + self.offset))
             step += w
 
 
@@ -321,6 +324,13 @@ class Trainer:
         self.val_batches = [vs.to_tensors(p.source, p.target, p.T_target_source, cfg.data.val_points, vrng)
                             for p in self.val_pairs]
 
+    @property
+    def curriculum_offset(self) -> int:
+        """Pairs the network saw before this run (0 unless warm-started): the curriculum goes on
+        where they left it instead of starting over at its first stage, so a campaign warm-started
+        session after session reaches its last (lowest-overlap) stage."""
+        return int(self.warm_start.get("pairs_seen", 0))
+
     def _resume(self, path: Path) -> None:
         """Continue from a trainer state (last.pt) or, warm-starting with a fresh optimizer,
         from an engine checkpoint (best.pt / shipped weights)."""
@@ -406,7 +416,7 @@ class Trainer:
             from tqdm import tqdm
             bar = tqdm(total=int(cfg.max_minutes * 60), initial=int(min(self.elapsed, cfg.max_minutes * 60)),
                        unit="s", desc="train")
-        stream = PairStream(self.sampler, cfg, self.rank, self.step)
+        stream = PairStream(self.sampler, cfg, self.rank, self.step, self.curriculum_offset)
         if cfg.workers > 0:
             batches = iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers,
                                                        prefetch_factor=4))
@@ -418,7 +428,7 @@ class Trainer:
         acc: dict[str, list[float]] = {}
         val: dict[str, float] = {}
         while self.step < cfg.max_steps and self.elapsed < cfg.max_minutes * 60:
-            stage = _stage(cfg, self.step)
+            stage = _stage(cfg, self.step + self.curriculum_offset)
             b = next(batches)
             with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=cfg.bf16):
                 out, bb = _forward(self.net, b, self.device, cfg)

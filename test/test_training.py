@@ -270,3 +270,22 @@ def test_a_warm_start_from_a_warm_started_checkpoint_counts_every_pair_seen(tmp_
     trainer.run()
     _, meta = load_checkpoint(tmp_path / "chain" / "snapshots" / "step_0000002.pt")
     assert meta["pairs_seen"] == 6996 and meta["warm_start"]["pairs_seen"] == 6994
+
+
+def test_a_warm_start_continues_the_curriculum_where_the_weights_left_it(tmp_path):
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC
+    from cegc_ros.training import PairStream, _stage
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "cont", max_steps=1)
+    cfg.train.stages = [Stage(100, 45.0, 64, min_overlap=0.4), Stage(10**9, 45.0, 48, min_overlap=0.1)]
+    save_checkpoint(tmp_path / "shipped.pt", CEGC(cfg.model), {"step": 150, "pairs_seen": 150})
+    warm = Trainer(cfg, resume=tmp_path / "shipped.pt", device="cpu", fragments=frags,
+                   val_fragments=frags, progress=False)
+    fresh = Trainer(cfg, device="cpu", fragments=frags, val_fragments=frags, progress=False)
+    assert (warm.step, warm.curriculum_offset, fresh.curriculum_offset) == (0, 150, 0)
+    assert _stage(cfg.train, warm.step + warm.curriculum_offset).min_overlap == 0.1
+    # The pairs it trains on are the last stage's (48 points), not the first's (64).
+    pair = next(iter(PairStream(warm.sampler, cfg.train, 0, warm.step, warm.curriculum_offset)))
+    assert pair["src"].shape[1] == 48
+    assert next(iter(PairStream(fresh.sampler, cfg.train, 0, 0)))["src"].shape[1] == 64
