@@ -195,7 +195,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         rate: playback speed factor on the bag's log times (ignored with ``lockstep``).
         lockstep: wait for the node's answer to each item (a pair; or a cloud of a stream)
             before publishing the next.
-        loops: plays of the bag (as ``ros2 bag play --loop``; 0: until interrupted). Before
+        loops: plays of the bag (as ``ros2 bag play --loop``; 0: until interrupted, and then
+            the completed plays are returned). Before
             each play after the first the node's ``~/reset`` is called (when it offers one), so
             a sequential-mode node takes the repeated stamps as a new odometry.
         timeout: after the last item of a play, wait at most this long (s) for outstanding
@@ -312,60 +313,66 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         sent = 0                            # items sent over all plays (for pairs_done)
         t_start = time.monotonic()
         play = 0
-        while loops == 0 or play < loops:
-            if play > 0:
-                _call_reset(reset, node_path)
-            with answered:
-                answers.clear()
-            published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
-            order: list[int] = []
-            pending: dict[int, set[str]] = {}   # stamp -> topics published so far
-            bar = _progress(n_items, progress, item)
-            t_play = time.monotonic()
-            log0 = clouds[0][0] if clouds else 0
-            try:
-                for log_ns, topic, raw in clouds:
-                    stamp = header_stamp_ns(raw)
-                    if not lockstep:
-                        delay = t_play + (log_ns - log0) / 1e9 / rate - time.monotonic()
-                        if delay > 0:
-                            time.sleep(delay)
-                    if lockstep and pending.get(stamp) is None and order:
+        try:
+            while loops == 0 or play < loops:
+                if play > 0:
+                    _call_reset(reset, node_path)
+                with answered:
+                    answers.clear()
+                published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
+                order: list[int] = []
+                pending: dict[int, set[str]] = {}   # stamp -> topics published so far
+                bar = _progress(n_items, progress, item)
+                t_play = time.monotonic()
+                log0 = clouds[0][0] if clouds else 0
+                try:
+                    for log_ns, topic, raw in clouds:
+                        stamp = header_stamp_ns(raw)
+                        if not lockstep:
+                            delay = t_play + (log_ns - log0) / 1e9 / rate - time.monotonic()
+                            if delay > 0:
+                                time.sleep(delay)
+                        if lockstep and pending.get(stamp) is None and order:
+                            _wait_answer(answered, answers, diag, order[-1],
+                                         None if base is None else base + sent, pair_timeout,
+                                         pubs, len(order), n_items, item)
+                        pubs[topic].publish(raw)
+                        seen = pending.setdefault(stamp, set())
+                        seen.add(topic)
+                        if len(seen) == per_item:
+                            published[stamp] = time.monotonic()
+                            order.append(stamp)
+                            sent += 1
+                            bar.update(1)
+                    if lockstep and order:
                         _wait_answer(answered, answers, diag, order[-1],
                                      None if base is None else base + sent, pair_timeout,
                                      pubs, len(order), n_items, item)
-                    pubs[topic].publish(raw)
-                    seen = pending.setdefault(stamp, set())
-                    seen.add(topic)
-                    if len(seen) == per_item:
-                        published[stamp] = time.monotonic()
-                        order.append(stamp)
-                        sent += 1
-                        bar.update(1)
-                if lockstep and order:
-                    _wait_answer(answered, answers, diag, order[-1],
-                                 None if base is None else base + sent, pair_timeout,
-                                 pubs, len(order), n_items, item)
-                    if base is not None:    # diagnostics that count every item of this play
+                        if base is not None:    # diagnostics that count every item of this play
+                            with answered:
+                                answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
+                                                  >= base + sent, timeout)
+                    if not lockstep:
                         with answered:
-                            answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
-                                              >= base + sent, timeout)
-                if not lockstep:
-                    with answered:
-                        answered.wait_for(lambda: all(s in answers for s in order), timeout)
-            finally:
-                bar.close()
-            with lock:
-                for stamp in order:
-                    got = answers.get(stamp)
-                    T_gt = gt.get(stamp)
-                    records.append(ReplayRecord(
-                        index=len(records), stamp_ns=stamp,
-                        T_est=None if got is None else got[0].tolist(),
-                        T_gt=None if T_gt is None else T_gt.tolist(),
-                        latency_s=None if got is None else got[1] - published[stamp],
-                        loop=play))
-            play += 1
+                            answered.wait_for(lambda: all(s in answers for s in order), timeout)
+                finally:
+                    bar.close()
+                with lock:
+                    for stamp in order:
+                        got = answers.get(stamp)
+                        T_gt = gt.get(stamp)
+                        records.append(ReplayRecord(
+                            index=len(records), stamp_ns=stamp,
+                            T_est=None if got is None else got[0].tolist(),
+                            T_gt=None if T_gt is None else T_gt.tolist(),
+                            latency_s=None if got is None else got[1] - published[stamp],
+                            loop=play))
+                play += 1
+        except KeyboardInterrupt:
+            # --loop ends with Ctrl-C: the plays completed so far are the result (the one cut
+            # short is left out); a bounded replay, or one before its first play, re-raises.
+            if loops != 0 or play == 0:
+                raise
         wall = time.monotonic() - t_start
         with lock:
             last_diag = dict(diag)

@@ -261,3 +261,47 @@ def test_make_bag_writes_your_own_cloud_files_as_a_sequence_bag(tmp_path, capsys
     assert make_bag(["--clouds", str(tmp_path / "nope.npy"), "--out", str(tmp_path / "b2")]) == 1
     assert capsys.readouterr().err.strip().splitlines() == [
         f"cegc-make-bag: error: {tmp_path / 'nope.npy'}: no such file"]
+
+
+class ResettingRecorder(CloudRecorder):
+    """A CloudRecorder that also offers ~/reset, counting the calls."""
+
+    def __init__(self, namespace: str, topic: str) -> None:
+        from std_srvs.srv import Trigger
+
+        super().__init__(namespace, topic)
+        self.resets = 0
+
+        def on_reset(_request, response):
+            self.resets += 1
+            response.success = True
+            return response
+        self.node.create_service(Trigger, f"{namespace}/register_node/reset", on_reset)
+
+
+def test_loop_plays_until_ctrl_c_then_reports_the_completed_plays(tmp_path):
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    bag = _recording(tmp_path / "rec_forever", n=3)
+    out = tmp_path / "loop.json"
+    rec = ResettingRecorder("/forever", "/forever/cloud")
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "cegc_ros.tools.replay", str(bag), "--loop",
+                                 "--node-namespace", "/forever", "--rate", "8", "--timeout", "0.2",
+                                 "--out", str(out)], env=rh.ros_env(), cwd=rh.REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert rh.wait_for(lambda: rec.resets >= 2 or proc.poll() is not None, 60.0)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        rec.close()
+    assert proc.returncode == 0, stderr
+    report = json.loads(out.read_text())
+    plays = report["loops"]
+    assert plays >= 2 and json.loads(stdout.strip().splitlines()[-1])["loops"] == plays
+    assert [r["loop"] for r in report["records"]] == [k for k in range(plays) for _ in range(3)]
+    assert rec.stamps[:6] == [(50 + k) * 10**8 for k in range(3)] * 2     # the same bag again

@@ -25,7 +25,8 @@ cloud) only when the node has answered the previous one (a pose, or a rejection 
 /diagnostics), which is what an accuracy evaluation wants: nothing is dropped because the node
 was busy. A node that dies (its input subscriptions end) or leaves an item unanswered for
 ``--wait`` seconds (default 30) ends the replay with one line and exit status 1.
-``--loops N`` plays the bag N times and ``--loop`` until Ctrl-C, as ``ros2 bag play --loop``;
+``--loops N`` plays the bag N times and ``--loop`` until Ctrl-C (then the completed plays are
+reported and written, exit 0), as ``ros2 bag play --loop``;
 before each repeat the node's ``~/reset`` is called, so a sequential-mode node starts a new
 odometry instead of refusing the repeated stamps (a node without the service: exit 1).
 
