@@ -106,6 +106,17 @@ def seq_node():
     rclpy.try_shutdown(context=context)
 
 
+def _reset(probe) -> None:
+    """Call the node's ~/reset: the next cloud starts a new odometry."""
+    from std_srvs.srv import Trigger
+
+    client = probe.create_client(Trigger, "/register_node/reset")
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    assert rh.wait_for(future.done, 10.0) and future.result().success
+    probe.destroy_client(client)
+
+
 def _fresh_diag(probe, timeout: float = 10.0) -> dict[str, str]:
     n = len(probe.outputs("diagnostics"))
     assert rh.wait_for(lambda: len(probe.outputs("diagnostics")) > n, timeout)
@@ -213,13 +224,8 @@ def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node,
     from cegc_ros.metrics import rotation_error_deg
     from cegc_ros.replay import replay_bag, summary
 
-    from std_srvs.srv import Trigger
-
     proc, probe = seq_node
-    client = probe.create_client(Trigger, "/register_node/reset")   # a new odometry first
-    assert client.wait_for_service(timeout_sec=10.0)
-    future = client.call_async(Trigger.Request())
-    assert rh.wait_for(future.done, 10.0) and future.result().success
+    _reset(probe)                                                  # a new odometry first
     resets = int(_fresh_diag(probe)["resets"])
     later = dataclasses.replace(sequence, stamps_ns=sequence.stamps_ns + 1000 * 10**9)
     bag = tmp_path / "seq_bag"
@@ -240,3 +246,25 @@ def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node,
     assert int(d["resets"]) == resets + 1                          # the replay's, between plays
     assert float(d["sequential.voxel_size"]) > 0                   # derived from the first cloud
     assert proc.poll() is None
+
+
+def test_lockstep_moves_on_after_a_cloud_the_node_rejects(seq_node, sequence, tmp_path):
+    # A cloud the node rejects (all NaN: counted, no odometry) is answered by its counters on
+    # /diagnostics: the lockstep replay goes on to the next cloud instead of waiting --wait.
+    import dataclasses
+
+    from cegc_ros.data.bag import write_sequence
+    from cegc_ros.replay import replay_bag
+
+    _, probe = seq_node
+    _reset(probe)
+    rejected = int(_fresh_diag(probe)["rejected.empty_cloud"])
+    clouds = list(sequence.clouds[:4])
+    clouds[2] = np.full((200, 3), np.nan, np.float32)
+    short = dataclasses.replace(sequence, clouds=clouds, poses=sequence.poses[:4],
+                                stamps_ns=sequence.stamps_ns[:4] + 2000 * 10**9)
+    bag = tmp_path / "with_a_bad_cloud"
+    write_sequence(bag, short)
+    result = replay_bag(bag, lockstep=True, pair_timeout=60.0, timeout=10.0)
+    assert [r.T_est is not None for r in result.records] == [True, True, False, True]
+    assert int(_fresh_diag(probe)["rejected.empty_cloud"]) == rejected + 1
