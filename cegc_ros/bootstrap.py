@@ -434,10 +434,8 @@ def job_environment(base: dict[str, str] | None = None, *,
     prefix = str(VENV)
     env["VIRTUAL_ENV"] = prefix
     env.pop("PYTHONHOME", None)
-    env["PATH"] = os.pathsep.join([str(VENV / "bin")] + [
-        p for p in env.get("PATH", "").split(os.pathsep) if p and p != str(VENV / "bin")])
-    env["AMENT_PREFIX_PATH"] = os.pathsep.join([prefix] + [
-        p for p in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p and p != prefix])
+    _prepend(env, "PATH", str(VENV / "bin"))
+    _prepend(env, "AMENT_PREFIX_PATH", prefix)
     if localhost:
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     else:

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-TOPIC_SOURCE = "/cegc/source"        # the pair-bag layout of cegc_ros.data.bag
-TOPIC_TARGET = "/cegc/target"
-TOPIC_GT = "/cegc/ground_truth"
+from cegc_ros.data.bag import (TOPIC_CLOUD, TOPIC_CLOUD_GT,  # the bag layouts played here
+                               TOPIC_GT, TOPIC_SOURCE, TOPIC_TARGET)
+
 
 
 class ReplayError(Exception):
@@ -73,8 +73,6 @@ def _topic(namespace: str, name: str) -> str:
     return f"{ns}/{name}"
 
 
-TOPIC_CLOUD = "/cegc/cloud"          # the sequence-bag layout of cegc_ros.data.bag
-TOPIC_CLOUD_GT = "/cegc/cloud_ground_truth"
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
 
@@ -311,62 +309,68 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
 
         records: list[ReplayRecord] = []
         sent = 0                            # items sent over all plays (for pairs_done)
+        log0 = clouds[0][0] if clouds else 0
+
+        def play_once(play: int) -> None:
+            """Publish the bag once; append its records (one per item, in bag order)."""
+            nonlocal sent
+            with answered:
+                answers.clear()
+            published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
+            order: list[int] = []
+            pending: dict[int, set[str]] = {}   # stamp -> topics published so far
+            bar = _progress(n_items, progress, item)
+            t_play = time.monotonic()
+            try:
+                for log_ns, topic, raw in clouds:
+                    stamp = header_stamp_ns(raw)
+                    if not lockstep:
+                        delay = t_play + (log_ns - log0) / 1e9 / rate - time.monotonic()
+                        if delay > 0:
+                            time.sleep(delay)
+                    if lockstep and pending.get(stamp) is None and order:
+                        _wait_answer(answered, answers, diag, order[-1],
+                                     None if base is None else base + sent, pair_timeout,
+                                     pubs, len(order), n_items, item)
+                    pubs[topic].publish(raw)
+                    seen = pending.setdefault(stamp, set())
+                    seen.add(topic)
+                    if len(seen) == per_item:
+                        published[stamp] = time.monotonic()
+                        order.append(stamp)
+                        sent += 1
+                        bar.update(1)
+                if lockstep and order:
+                    _wait_answer(answered, answers, diag, order[-1],
+                                 None if base is None else base + sent, pair_timeout,
+                                 pubs, len(order), n_items, item)
+                    if base is not None:    # diagnostics that count every item of this play
+                        with answered:
+                            answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
+                                              >= base + sent, timeout)
+                if not lockstep:
+                    with answered:
+                        answered.wait_for(lambda: all(s in answers for s in order), timeout)
+            finally:
+                bar.close()
+            with lock:
+                for stamp in order:
+                    got = answers.get(stamp)
+                    T_gt = gt.get(stamp)
+                    records.append(ReplayRecord(
+                        index=len(records), stamp_ns=stamp,
+                        T_est=None if got is None else got[0].tolist(),
+                        T_gt=None if T_gt is None else T_gt.tolist(),
+                        latency_s=None if got is None else got[1] - published[stamp],
+                        loop=play))
+
         t_start = time.monotonic()
         play = 0
         try:
             while loops == 0 or play < loops:
                 if play > 0:
                     _call_reset(reset, node_path)
-                with answered:
-                    answers.clear()
-                published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
-                order: list[int] = []
-                pending: dict[int, set[str]] = {}   # stamp -> topics published so far
-                bar = _progress(n_items, progress, item)
-                t_play = time.monotonic()
-                log0 = clouds[0][0] if clouds else 0
-                try:
-                    for log_ns, topic, raw in clouds:
-                        stamp = header_stamp_ns(raw)
-                        if not lockstep:
-                            delay = t_play + (log_ns - log0) / 1e9 / rate - time.monotonic()
-                            if delay > 0:
-                                time.sleep(delay)
-                        if lockstep and pending.get(stamp) is None and order:
-                            _wait_answer(answered, answers, diag, order[-1],
-                                         None if base is None else base + sent, pair_timeout,
-                                         pubs, len(order), n_items, item)
-                        pubs[topic].publish(raw)
-                        seen = pending.setdefault(stamp, set())
-                        seen.add(topic)
-                        if len(seen) == per_item:
-                            published[stamp] = time.monotonic()
-                            order.append(stamp)
-                            sent += 1
-                            bar.update(1)
-                    if lockstep and order:
-                        _wait_answer(answered, answers, diag, order[-1],
-                                     None if base is None else base + sent, pair_timeout,
-                                     pubs, len(order), n_items, item)
-                        if base is not None:    # diagnostics that count every item of this play
-                            with answered:
-                                answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
-                                                  >= base + sent, timeout)
-                    if not lockstep:
-                        with answered:
-                            answered.wait_for(lambda: all(s in answers for s in order), timeout)
-                finally:
-                    bar.close()
-                with lock:
-                    for stamp in order:
-                        got = answers.get(stamp)
-                        T_gt = gt.get(stamp)
-                        records.append(ReplayRecord(
-                            index=len(records), stamp_ns=stamp,
-                            T_est=None if got is None else got[0].tolist(),
-                            T_gt=None if T_gt is None else T_gt.tolist(),
-                            latency_s=None if got is None else got[1] - published[stamp],
-                            loop=play))
+                play_once(play)
                 play += 1
         except KeyboardInterrupt:
             # --loop ends with Ctrl-C: the plays completed so far are the result (the one cut

@@ -109,6 +109,19 @@ def derive_distances(config: SequentialConfig, extent: float) -> Distances:
                      float(extent))
 
 
+def in_range(points: np.ndarray, max_range: float) -> np.ndarray:
+    """The points within ``max_range`` (metres) of the sensor, the frame's origin (all at 0)."""
+    r = max_range
+    return points if r <= 0 else points[(points.astype(np.float64) ** 2).sum(1) <= r * r]
+
+
+def distances_for(config: SequentialConfig, cloud: np.ndarray) -> Distances:
+    """The distances the odometry derives when ``cloud`` (N, 3) is its first: from the robust
+    extent of its finite points within ``max_range`` (ValueError when none are left)."""
+    points = finite_cloud("cloud", cloud, 1).astype(np.float32)      # as feed() takes it
+    return derive_distances(config, robust_extent(in_range(points, config.max_range)))
+
+
 @dataclass
 class FrameResult:
     """What :meth:`KeyframeOdometry.feed` made of one cloud.
@@ -267,12 +280,12 @@ class KeyframeOdometry:
                 raise ValueError(f"cloud stamp {stamp_ns} ns is not after the previous cloud's "
                                  f"({self._last_stamp} ns); reset() to start over")
             points = finite_cloud("cloud", cloud, MIN_POINTS).astype(np.float32)
-            in_range = self._in_range(points)
-            if len(in_range) < MIN_POINTS:
-                raise ValueError(f"cloud has {len(in_range)} points within sequential.max_range "
+            near = self._in_range(points)
+            if len(near) < MIN_POINTS:
+                raise ValueError(f"cloud has {len(near)} points within sequential.max_range "
                                  f"{cfg.max_range:g} m, at least {MIN_POINTS} are needed")
-            distances = self.distances or derive_distances(cfg, robust_extent(in_range))
-            prepared = icp_stage.prepare_cloud(in_range, distances.voxel_size)
+            distances = self.distances or derive_distances(cfg, robust_extent(near))
+            prepared = icp_stage.prepare_cloud(near, distances.voxel_size)
             if len(prepared) < MIN_POINTS:
                 raise ValueError(f"cloud has {len(prepared)} voxels of "
                                  f"{distances.voxel_size:.4g} m, at least {MIN_POINTS} are "
@@ -452,9 +465,7 @@ class KeyframeOdometry:
         return free if free.fitness >= held.fitness + PRIOR_RELEASE_FITNESS else held
 
     def _in_range(self, points: np.ndarray) -> np.ndarray:
-        """The points within ``max_range`` of the sensor (all when it is 0)."""
-        r = self.config.max_range
-        return points if r <= 0 else points[(points.astype(np.float64) ** 2).sum(1) <= r * r]
+        return in_range(points, self.config.max_range)
 
     def _icp(self, prepared: icp_stage.PreparedCloud, T_guess: np.ndarray,
              prior: float | None = None) -> icp_stage.IcpResult:

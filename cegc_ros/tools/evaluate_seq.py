@@ -229,14 +229,9 @@ def run_odometry(name: str, seq: Any, config: Any, registration: Any = None,
 def derived_voxel(seq: Any, config: Any) -> float:
     """The voxel grid our odometry uses on ``seq`` (``sequential.voxel_size``, or derived from
     the first cloud as :class:`KeyframeOdometry` derives it): KISS-ICP gets the same one."""
-    from cegc_ros.bounding import robust_extent
-    from cegc_ros.sequential.odometry import derive_distances
+    from cegc_ros.sequential.odometry import distances_for
 
-    first = np.asarray(seq.clouds[0], np.float64)
-    first = first[np.isfinite(first).all(1)]
-    if config.max_range > 0:
-        first = first[(first ** 2).sum(1) <= config.max_range ** 2]
-    return derive_distances(config, robust_extent(first)).voxel_size
+    return distances_for(config, seq.clouds[0]).voxel_size
 
 
 def kiss_icp_available() -> bool:

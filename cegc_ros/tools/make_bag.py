@@ -114,9 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         pairs = iter_pairs(args.protocol, args.split, args.pairs, args.seed, **kwargs)
     bar = tqdm(pairs, total=args.pairs, unit="pair", desc=f"{args.protocol}/{args.split}",
                disable=args.no_progress)
-    if args.out.exists():          # --overwrite of a bag, checked above
-        import shutil
-        shutil.rmtree(args.out)
+    _clear_out(args.out)
     try:
         n = write_pairs(args.out, bar, storage=args.storage, protocol=args.protocol,
                         seed=args.seed)
@@ -128,6 +126,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {n} {args.protocol}/{args.split} pairs (seed {args.seed}) to {args.out} "
           f"[{args.storage}]")
     return 0
+
+
+def _clear_out(out: Path) -> None:
+    """Remove ``out`` before writing: an existing bag that --overwrite may replace (main
+    checked that)."""
+    if out.exists():
+        import shutil
+        shutil.rmtree(out)
 
 
 def _write_clouds(args: argparse.Namespace) -> int:
@@ -147,9 +153,7 @@ def _write_clouds(args: argparse.Namespace) -> int:
     stamps = start_ns + np.round(np.arange(len(clouds)) * 1e9 / args.rate).astype(np.int64)
     seq = Sequence(clouds, None, stamps, args.frame_id,
                    {"source": "files", "files": [str(p) for p in args.clouds]})
-    if args.out.exists():          # --overwrite of a bag, checked above
-        import shutil
-        shutil.rmtree(args.out)
+    _clear_out(args.out)
     try:
         n = write_sequence(args.out, seq, storage=args.storage)
     except BagError as err:
