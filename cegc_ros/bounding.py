@@ -88,6 +88,16 @@ class Dropped:
         return self.non_finite + self.no_return + self.out_of_range + self.isolated
 
 
+#: k-d-tree queries of more points than this use every core; smaller ones stay on one thread,
+#: where SciPy's per-call thread start-up costs more than it saves (2000 points: 1.5 ms on one
+#: thread, 3.9 ms on two beside a busy process; docs/performance.md).
+PARALLEL_QUERY_POINTS = 10000
+
+
+def _workers(n: int) -> int:
+    return -1 if n > PARALLEL_QUERY_POINTS else 1
+
+
 def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     """(N, 3) points -> those with at least ISOLATED_MIN_NEIGHBOURS others within
     ISOLATED_RADIUS x the median nearest-neighbour spacing (of at most SPACING_SAMPLE seeded
@@ -99,13 +109,13 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     probe = points
     if len(points) > SPACING_SAMPLE:
         probe = points[np.random.default_rng(seed).choice(len(points), SPACING_SAMPLE, replace=False)]
-    d, _ = tree.query(probe, k=2, workers=-1)
+    d, _ = tree.query(probe, k=2, workers=_workers(len(probe)))
     spacing = float(np.median(d[:, 1]))
     if not spacing > 0:                               # duplicates: nothing is isolated
         return points, 0
     # The k-th nearest other point within the radius (k = ISOLATED_MIN_NEIGHBOURS; the first
     # neighbour found is the point itself): cheaper than counting the whole ball.
-    far, _ = tree.query(points, k=ISOLATED_MIN_NEIGHBOURS + 1, workers=-1,
+    far, _ = tree.query(points, k=ISOLATED_MIN_NEIGHBOURS + 1, workers=_workers(len(points)),
                         distance_upper_bound=ISOLATED_RADIUS * spacing)
     keep = np.isfinite(far[:, -1])
     return points[keep], int(len(points) - keep.sum())

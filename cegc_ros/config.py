@@ -43,12 +43,14 @@ class PreprocessConfig:
         "Most points per cloud after the voxel grid: a cloud above it is re-gridded coarser, "
         "then subsampled. Bounds the time and memory of every later stage (ICP, fitness).",
         100, 1_000_000))
-    support_points: int = field(default=2048, metadata=_meta(
+    support_points: int = field(default=1024, metadata=_meta(
         "Points per cloud on which normals and FPFH are computed (seeded subsample of the "
-        "bounded cloud); the network's points are drawn from them.", 64, 20000))
-    num_points: int = field(default=1024, metadata=_meta(
-        "Points per cloud fed to the network (seeded subsample of the support points).",
-        64, 8192))
+        "bounded cloud); the network's points are drawn from them. 1024 with num_points 512 "
+        "was chosen on synthetic validation pairs for speed at equal recall "
+        "(docs/performance.md).", 64, 20000))
+    num_points: int = field(default=512, metadata=_meta(
+        "Points per cloud fed to the network (seeded subsample of the support points). The "
+        "network's time grows as about the square of this.", 64, 8192))
     sampling: str = field(default="grid", metadata=_meta(
         "How the support and network points are drawn: 'grid' (spatially even: one point per "
         "cell of the coarsest grid with enough occupied cells) or 'random' (uniform draw, which "
@@ -79,10 +81,10 @@ class EngineConfig:
         "Correspondence weights for the estimator: 'learned' (HOCE overlap x CAMS/CFM pair "
         "confidence) or 'uniform' (all 1: the ablation without the learned confidence).",
         choices=("learned", "uniform")))
-    max_correspondences: int = field(default=3000, metadata=_meta(
+    max_correspondences: int = field(default=1500, metadata=_meta(
         "Most correspondences handed to the estimator (the most confident; its cost grows as "
-        "the square of this). 3000 was chosen on synthetic validation pairs (docs/pipeline.md).",
-        10, 10000))
+        "the square of this). 1500 with 512 network points was chosen on synthetic validation "
+        "pairs (docs/performance.md).", 10, 10000))
     estimator: str = field(default="compatibility", metadata=_meta(
         "Pose from the weighted correspondences: 'compatibility' (second-order spatial "
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "

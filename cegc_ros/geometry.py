@@ -30,7 +30,6 @@ NORMAL_MAX_NN = 30
 FPFH_RADIUS = 0.25
 FPFH_MAX_NN = 200
 LEGACY_FEATURES = {"normal_radius": 0.04, "fpfh_radius": 0.10, "fpfh_max_nn": 100}  # older checkpoints
-SUPPORT_POINTS = 2048    # points on which normals and FPFH are computed
 
 
 @dataclass
@@ -189,7 +188,7 @@ class PreparedCloud:
 
 
 def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generator,
-                  with_features: bool = True, support_points: int = SUPPORT_POINTS,
+                  support_points: int, with_features: bool = True,
                   normal_radius: float = NORMAL_RADIUS, fpfh_radius: float = FPFH_RADIUS,
                   fpfh_max_nn: int = FPFH_MAX_NN, sampling: str = "grid") -> PreparedCloud:
     """Support subsample -> normals + FPFH on the support -> network subsample of num_points

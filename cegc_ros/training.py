@@ -88,7 +88,7 @@ class TrainConfig:
     checkpoint_minutes: float = 5.0
     val_every: int = 250
     log_every: int = 10
-    bf16: bool = False
+    bf16: bool = False   # bf16 autocast where the hardware has it (CUDA, AVX-512-BF16 / AMX CPUs); elsewhere fp32
     threads: int = 0
     workers: int = 0     # DataLoader processes preparing pairs while the network trains (0: in the loop)
     objective: str = "candidates"   # OBJECTIVES
@@ -233,6 +233,18 @@ class PairStream(torch.utils.data.IterableDataset):
             rng = np.random.default_rng([self.cfg.seed, self.rank, step])
             yield self.sampler.sample(rng, _stage(self.cfg, step + self.offset))
             step += w
+
+
+def bf16_hardware(device: str, cpuinfo: str = "/proc/cpuinfo") -> bool:
+    """Whether bf16 autocast pays on ``device``: CUDA, or a CPU with AVX-512-BF16 or AMX-BF16
+    (on an AVX2-only CPU torch emulates bf16 and runs slower than fp32)."""
+    if device.startswith("cuda"):
+        return True
+    try:
+        flags = Path(cpuinfo).read_text().split()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
 def _stage(cfg: TrainConfig, step: int) -> Stage:
@@ -427,10 +439,14 @@ class Trainer:
         t_prev = time.perf_counter()
         acc: dict[str, list[float]] = {}
         val: dict[str, float] = {}
+        bf16 = cfg.bf16 and bf16_hardware(self.device)
+        if cfg.bf16 and not bf16:
+            print("[cegc-train] train.bf16: this CPU has no bf16 hardware (it would run slower than "
+                  "fp32, shared/notes/CPU_FACTS.md), training in fp32", flush=True)
         while self.step < cfg.max_steps and self.elapsed < cfg.max_minutes * 60:
             stage = _stage(cfg, self.step + self.curriculum_offset)
             b = next(batches)
-            with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=cfg.bf16):
+            with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=bf16):
                 out, bb = _forward(self.net, b, self.device, cfg)
             loss, parts = _loss(self.cfg, out, bb)
             self.opt.zero_grad(set_to_none=True)

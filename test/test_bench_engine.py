@@ -50,3 +50,14 @@ def test_allocator_environments_and_bad_arguments(capsys, monkeypatch):
         raise AssertionError("jemalloc without the library must fail")
     assert B.main(["--methods", "ransac-2threads,nope"]) == 2
     assert "unknown value(s) nope" in capsys.readouterr().err
+
+
+def test_ratios_compare_the_engine_with_each_peer_of_the_same_size():
+    def row(points, method, ms):
+        return {"points": points, "allocator": "jemalloc", "method": method,
+                "stages": {"total": {"median_ms": ms, "p90_ms": ms}}}
+    text = B.ratios([row(1500, "cegc", 120.0), row(1500, "ransac", 60.0), row(1500, "sc2pcr+icp", 240.0),
+                     row(20000, "cegc", 250.0), row(20000, "ransac", 1000.0)])
+    lines = text.splitlines()
+    assert lines[0] == "1,500 points (jemalloc): cegc / ransac 2.00x, sc2pcr+icp 0.50x"
+    assert lines[1] == "20,000 points (jemalloc): cegc / ransac 0.25x"

@@ -106,3 +106,56 @@ def test_geometric_verification_prefers_the_pose_that_lays_the_cloud_on_the_targ
     assert verified.inliers[:40].all() and not verified.inliers[40:80].any()
     off = estimate_compatibility(src, tgt, w, 0.05, clouds=(cloud, target))
     np.testing.assert_array_equal(off.R, alone.R)                 # verify = 0 (the default) switches it off
+
+
+def _reference_matrices(src, tgt, d_thr):
+    """The compatibility matrices as first written (before the blocked version): SciPy's
+    pairwise distances in float64, cast to float32, then the hard and soft tests."""
+    from scipy.spatial.distance import cdist
+    d = np.abs(cdist(src, src).astype(np.float32) - cdist(tgt, tgt).astype(np.float32))
+    hard = (d < d_thr).astype(np.float32)
+    soft = np.maximum(np.float32(1.0) - np.square(d / np.float32(d_thr)), np.float32(0.0))
+    np.fill_diagonal(hard, 0.0)
+    np.fill_diagonal(soft, 0.0)
+    return hard, soft
+
+
+@pytest.mark.parametrize("K", [7, 64, 65, 500, 3000])
+def test_blocked_compatibility_matrices_equal_the_direct_ones(K):
+    from cegc_ros.estimator import compatibility_matrices
+    src, tgt, _, _, _ = correspondences(K, 0.3, seed=K)
+    tgt = tgt + 100.0                                  # far from the origin: centring keeps precision
+    hard, soft = compatibility_matrices(src, tgt, 0.05)
+    ref_hard, ref_soft = _reference_matrices(src, tgt, 0.05)
+    assert hard.dtype == soft.dtype == np.float32 and hard.shape == (K, K)
+    # equal, except where the float32 rounding of the reference puts d_ij on the other side of
+    # the threshold (the blocked version keeps float64 until the comparison)
+    from scipy.spatial.distance import cdist
+    d = np.abs(cdist(src, src) - cdist(tgt, tgt))
+    differ = hard != ref_hard
+    assert (np.abs(d[differ] - 0.05) < 1e-5).all()
+    assert differ.sum() <= 1e-4 * K * K
+    assert np.abs(soft - ref_soft).max() < 1e-4
+    assert (np.diag(hard) == 0).all() and (np.diag(soft) == 0).all()
+    assert hard.sum() > K                               # the inliers are compatible with each other
+
+
+def test_the_faster_estimator_keeps_the_inlier_sets_of_the_direct_one(monkeypatch):
+    """Random problems (40, 200-3000 correspondences, 5-60% inliers, with and without the
+    geometric verification): the blocked matrices and the early-stopped power iteration give
+    exactly the inlier sets of the direct matrices with 20 full iterations."""
+    from cegc_ros import estimator
+    fast, slow = [], []
+    for seed in range(40):
+        K = (200, 800, 1500, 3000)[seed % 4]
+        src, tgt, _, _, _ = correspondences(K, (0.05, 0.1, 0.3, 0.6)[seed % 3], seed=seed)
+        w = np.random.default_rng(seed).random(K)
+        clouds = (src[:400], tgt[:400]) if seed % 2 else None
+        cfg = CompatibilityConfig(verify=50 if clouds else 0)
+        fast.append(estimate_compatibility(src, tgt, w, 0.05, cfg, clouds).inliers)
+        with monkeypatch.context() as m:
+            m.setattr(estimator, "compatibility_matrices", _reference_matrices)
+            m.setattr(estimator, "SPECTRAL_TOL", 0.0)
+            slow.append(estimate_compatibility(src, tgt, w, 0.05, cfg, clouds).inliers)
+    assert all((a == b).all() for a, b in zip(fast, slow))
+    assert sum(a.sum() for a in fast) > 0.05 * sum(len(a) for a in fast)

@@ -66,3 +66,6 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
     assert len(rows) == 2 and {r["run"] for r in rows} == {str(default_weights())}
     assert all(0.0 <= float(r["fitness"]) <= 1.0 and float(r["total_s"]) > 0 for r in rows)
     assert recall == sum(r["correct"] == "True" and r["valid"] == "True" for r in rows) / 2
+    # correct means within 15 deg and 0.3 m, and the dumped errors say so
+    assert all((r["correct"] == "True") == (float(r["rotation_error_deg"]) < 15.0
+                                            and float(r["translation_error_m"]) < 0.3) for r in rows)

@@ -289,3 +289,15 @@ def test_a_warm_start_continues_the_curriculum_where_the_weights_left_it(tmp_pat
     pair = next(iter(PairStream(warm.sampler, cfg.train, 0, warm.step, warm.curriculum_offset)))
     assert pair["src"].shape[1] == 48
     assert next(iter(PairStream(fresh.sampler, cfg.train, 0, 0)))["src"].shape[1] == 64
+
+
+def test_bf16_autocast_only_where_the_hardware_has_it(tmp_path):
+    from cegc_ros.training import bf16_hardware
+    amd = tmp_path / "amd"
+    amd.write_text("flags\t\t: fpu sse avx2 fma\nflags\t\t: fpu sse avx2 fma\n")
+    xeon = tmp_path / "xeon"
+    xeon.write_text("flags\t\t: fpu avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n")
+    assert not bf16_hardware("cpu", str(amd))
+    assert bf16_hardware("cpu", str(xeon))
+    assert bf16_hardware("cuda:0", str(amd))
+    assert not bf16_hardware("cpu", str(tmp_path / "missing"))

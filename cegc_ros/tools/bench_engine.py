@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 SIZES = (1500, 20000, 300000, 5000000)
-METHODS = ("cegc", "ransac", "sc2pcr")
+METHODS = ("cegc", "ransac", "sc2pcr", "sc2pcr+icp")
 #: Also accepted: RANSAC on 2 Open3D threads (not repeatable, see cegc_ros/baselines.py), to
 #: measure what the one-thread default costs.
 EXTRA_METHODS = ("ransac-2threads",)
@@ -212,6 +212,19 @@ def table(results: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def ratios(results: list[dict[str, Any]]) -> str:
+    """One line per (size, allocator): the engine's median total over each peer's, same run."""
+    out = []
+    groups: dict[tuple[int, str], dict[str, float]] = {}
+    for r in results:
+        groups.setdefault((r["points"], r["allocator"]), {})[r["method"]] = r["stages"]["total"]["median_ms"]
+    for (points, allocator), med in groups.items():
+        if "cegc" in med and len(med) > 1:
+            parts = [f"{m} {med['cegc'] / v:.2f}x" for m, v in med.items() if m != "cegc" and v > 0]
+            out.append(f"{points:,} points ({allocator}): cegc / " + ", ".join(parts))
+    return "\n".join(out)
+
+
 def _csv(text: str, cast: Any, known: tuple | None = None) -> list:
     items = [x.strip() for x in text.split(",") if x.strip()]
     if known is not None and (bad := [x for x in items if x not in known]):
@@ -261,7 +274,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2 if "unknown" in str(err) or "must be" in str(err) else 1
     print()
     print(table(results))
+    print()
+    print(ratios(results))
     print(f"\n{header}; end: {load_line()}")
+    print("command: python -m cegc_ros.tools.bench_engine " + " ".join(argv if argv is not None else sys.argv[1:]))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"machine": header, "results": results}, indent=2) + "\n")

@@ -25,19 +25,21 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
     and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
-    valid, fitness, each stage's seconds) for ``--dump``."""
+    valid, rotation and translation errors, fitness, each stage's seconds) for ``--dump``."""
     from cegc_ros.metrics import rotation_error_deg
     ok, low, secs = [], [], []
     for p in pairs:
         res = register(p.source, p.target)
         T, E = p.T_target_source, res.T_target_source
-        correct = bool(rotation_error_deg(T[:3, :3], E[:3, :3]) < 15.0
-                       and np.linalg.norm(T[:3, 3] - E[:3, 3]) < 0.3)
+        rot_deg = float(rotation_error_deg(T[:3, :3], E[:3, :3]))
+        trans_m = float(np.linalg.norm(T[:3, 3] - E[:3, 3]))
+        correct = bool(rot_deg < 15.0 and trans_m < 0.3)
         ok.append(res.valid and correct)
         low.append(p.info["overlap"] < 0.3)
         secs.append(res.timings["total"])
         if rows is not None:
             rows.append({"overlap": float(p.info["overlap"]), "correct": correct,
+                         "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
     ok, low = np.array(ok, bool), np.array(low, bool)
@@ -72,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="move this share of each cloud's points out along their rays to 3-12 m "
                          "(cegc_ros/data/corruption.py; seeded per pair)")
     ap.add_argument("--dump", type=Path, default=None,
-                    help="write one CSV row per run and pair (overlap, correct, valid, fitness, stage seconds)")
+                    help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, stage seconds)")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
