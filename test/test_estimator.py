@@ -129,7 +129,7 @@ def test_blocked_compatibility_matrices_equal_the_direct_ones(K):
     ref_hard, ref_soft = _reference_matrices(src, tgt, 0.05)
     assert hard.dtype == soft.dtype == np.float32 and hard.shape == (K, K)
     # equal, except where the float32 rounding of the reference puts d_ij on the other side of
-    # the threshold (the blocked version keeps float64 until the comparison)
+    # the threshold (the two round differently: float32 before vs after the difference)
     from scipy.spatial.distance import cdist
     d = np.abs(cdist(src, src) - cdist(tgt, tgt))
     differ = hard != ref_hard
