@@ -49,7 +49,7 @@ def test_clouds_reach_the_engine_intact_and_the_buffer_grows(echo):
 
 def test_settings_travel_with_the_next_pair(echo):
     res = echo.register(_cloud(64, 0), _cloud(64, 1))
-    assert res.timings["updates"] == 0 and res.timings["num_points"] == 1024
+    assert res.timings["updates"] == 0 and res.timings["num_points"] == PreprocessConfig().num_points
     res = echo.register(_cloud(64, 0), _cloud(64, 1),
                         update=(PreprocessConfig(num_points=128), EngineConfig()))
     assert res.timings["updates"] == 1 and res.timings["num_points"] == 128
