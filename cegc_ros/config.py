@@ -47,7 +47,7 @@ class PreprocessConfig:
         "Points per cloud on which normals and FPFH are computed (seeded subsample of the "
         "bounded cloud); the network's points are drawn from them. 1024 with num_points 512 "
         "was chosen on synthetic validation pairs for speed at equal recall "
-        "(docs/performance.md).", 64, 20000))
+        "(docs/pipeline.md).", 64, 20000))
     num_points: int = field(default=512, metadata=_meta(
         "Points per cloud fed to the network (seeded subsample of the support points). The "
         "network's time grows as about the square of this.", 64, 8192))
@@ -84,7 +84,7 @@ class EngineConfig:
     max_correspondences: int = field(default=1500, metadata=_meta(
         "Most correspondences handed to the estimator (the most confident; its cost grows as "
         "the square of this). 1500 with 512 network points was chosen on synthetic validation "
-        "pairs (docs/performance.md).", 10, 10000))
+        "pairs (docs/pipeline.md).", 10, 10000))
     estimator: str = field(default="compatibility", metadata=_meta(
         "Pose from the weighted correspondences: 'compatibility' (second-order spatial "
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
