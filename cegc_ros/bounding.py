@@ -105,7 +105,7 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     if ISOLATED_MIN_NEIGHBOURS <= 0 or len(points) <= 2 * ISOLATED_MIN_NEIGHBOURS:
         return points, 0
     from scipy.spatial import cKDTree
-    tree = cKDTree(points)
+    tree = cKDTree(points, balanced_tree=False)          # built in half the time, same answers
     probe = points
     if len(points) > SPACING_SAMPLE:
         probe = points[np.random.default_rng(seed).choice(len(points), SPACING_SAMPLE, replace=False)]
@@ -113,12 +113,31 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     spacing = float(np.median(d[:, 1]))
     if not spacing > 0:                               # duplicates: nothing is isolated
         return points, 0
-    # The k-th nearest other point within the radius (k = ISOLATED_MIN_NEIGHBOURS; the first
-    # neighbour found is the point itself): cheaper than counting the whole ball.
-    far, _ = tree.query(points, k=ISOLATED_MIN_NEIGHBOURS + 1, workers=_workers(len(points)),
-                        distance_upper_bound=ISOLATED_RADIUS * spacing)
-    keep = np.isfinite(far[:, -1])
+    radius = ISOLATED_RADIUS * spacing
+    # Any two points in one cube of side radius / sqrt(3) are nearer than the radius, so a point
+    # whose cube holds ISOLATED_MIN_NEIGHBOURS others is kept without a search (on a surface
+    # almost every point: 14k-point clouds 15 -> 5 ms); only the rest are searched.
+    keep = _crowded_cells(points, 0.999 * radius / np.sqrt(3.0), ISOLATED_MIN_NEIGHBOURS + 1)
+    doubt = np.flatnonzero(~keep)
+    if len(doubt):
+        # The k-th nearest other point within the radius (k = ISOLATED_MIN_NEIGHBOURS; the first
+        # neighbour found is the point itself): cheaper than counting the whole ball.
+        far, _ = tree.query(points[doubt], k=ISOLATED_MIN_NEIGHBOURS + 1,
+                            workers=_workers(len(doubt)), distance_upper_bound=radius)
+        keep[doubt] = np.isfinite(far[:, -1])
     return points[keep], int(len(points) - keep.sum())
+
+
+def _crowded_cells(points: np.ndarray, cell: float, at_least: int) -> np.ndarray:
+    """(N,) bool: the point's cube of the grid of side ``cell`` holds at least ``at_least``
+    points (itself included)."""
+    key = np.floor((points - points.min(0)) / cell).astype(np.int64)
+    dims = key.max(0) + 1
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0 ** 62:   # ids would overflow
+        return np.zeros(len(points), bool)
+    ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+    return counts[inverse] >= at_least
 
 
 def clean_points(xyz: np.ndarray, min_range: float = 0.0, max_range: float = 0.0
@@ -127,9 +146,10 @@ def clean_points(xyz: np.ndarray, min_range: float = 0.0, max_range: float = 0.0
     [min_range, max_range] metres of the origin (0: no limit), and what was dropped. One copy;
     float32 stays float32."""
     arr = np.asarray(xyz)
-    keep = np.isfinite(arr).all(axis=1)
+    x, y, z = arr[:, 0], arr[:, 1], arr[:, 2]            # column views: ~10x faster than axis=1
+    keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
     dropped = Dropped(non_finite=int(len(arr) - keep.sum()))
-    zero = ~arr.any(axis=1) & keep
+    zero = (x == 0) & (y == 0) & (z == 0) & keep
     dropped.no_return = int(zero.sum())
     keep &= ~zero
     if min_range > 0 or max_range > 0:

@@ -32,9 +32,11 @@ def test_worker_reports_stage_percentiles_and_memory(tmp_path):
         assert 0 < r["stages"][key]["median_ms"] <= r["stages"][key]["p90_ms"]
     assert r["peak_rss_mb"] >= r["rss_after_loading_mb"] > 10
     assert r["median_rotation_error_deg"] < 5.0                           # same-fragment crops
+    assert r["startup_s"] > 0 and r["first_call_ms"] > 0 and r["first_call_ratio"] > 0
     r.update(allocator="system")
     head, _, row = B.table([r]).splitlines()
     assert row.startswith("| 1,536 | system | sc2pcr |") and row.count("|") == head.count("|")
+    assert f"{r['first_call_ms']:.0f} ({r['first_call_ratio']:.2f}x)" in row
 
 
 def test_allocator_environments_and_bad_arguments(capsys, monkeypatch):

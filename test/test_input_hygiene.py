@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cegc_ros.bounding import EXTENT_TRIM, Dropped, bound_pair, clean_points, extent, robust_extent
+from cegc_ros.bounding import (EXTENT_TRIM, ISOLATED_MIN_NEIGHBOURS, ISOLATED_RADIUS, Dropped, bound_pair,
+                               clean_points, drop_isolated, extent, robust_extent)
 from cegc_ros.config import PreprocessConfig
 from cegc_ros.data.corruption import add_flying_pixels
 from cegc_ros.metrics import rotation_error_deg
@@ -46,6 +47,27 @@ def test_clean_points_drops_and_counts_each_defect():
     assert np.isfinite(out).all() and (np.linalg.norm(out, axis=1) >= 1.0).all()
     same, none = clean_points(pts[150:][fin[150:]])   # limits off: only defects go
     assert none == Dropped() and len(same) == fin[150:].sum()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_drop_isolated_keeps_exactly_what_a_full_search_keeps(seed):
+    """The cube pre-filter only skips searches: the kept set is the brute-force one's."""
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng(seed)
+    surface = _room()[rng.choice(len(_room()), 6000, replace=False)]
+    strays = rng.uniform(-6, 6, (150, 3))                       # lone returns far out
+    near = surface[rng.choice(len(surface), 60)] + rng.normal(0, 0.15, (60, 3))   # borderline
+    pairs = np.repeat(rng.uniform(-6, 6, (20, 3)), 2, axis=0) + rng.normal(0, 0.01, (40, 3))
+    pts = np.concatenate([surface, strays, near, pairs])
+    kept, n = drop_isolated(pts, seed=seed)
+    # brute force: every point's neighbours within the radius, from the same spacing estimate
+    tree = cKDTree(pts)
+    probe = pts[np.random.default_rng(seed).choice(len(pts), 2000, replace=False)]
+    spacing = np.median(tree.query(probe, k=2)[0][:, 1])
+    counts = np.array([len(c) - 1 for c in tree.query_ball_point(pts, ISOLATED_RADIUS * spacing)])
+    expect = pts[counts >= ISOLATED_MIN_NEIGHBOURS]
+    assert n == len(pts) - len(expect) and 100 < n < 250          # the strays, not the surface
+    np.testing.assert_array_equal(kept, expect)
 
 
 def test_robust_extent_ignores_a_few_per_cent_of_flying_pixels():

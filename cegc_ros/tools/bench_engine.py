@@ -15,7 +15,8 @@ way a denser sensor would sample the same surfaces. The ground truth is unchange
 Each (size, allocator, method) runs in a fresh subprocess, so that its peak resident memory
 (``ru_maxrss``) is its own: one loaded pair at a time (as a node holds it), torch, Open3D and
 the registrations together. One
-warm-up registration, then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
+cold registration (the process's first, after ``Registrar.from_checkpoint``: the table's "first
+call" column, and its ratio to the same pair warm), then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
 90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
 features / registration), and the process's CPU time per registration (all threads; on a
 loaded machine the wall time grows with the load, the CPU time much less). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
@@ -110,13 +111,17 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
         from cegc_ros.engine import Registrar
         from cegc_ros.evaluation.methods import engine_configs
         pre, eng = engine_configs()                        # the node's shipped parameter file
+        t_load = time.perf_counter()
         registrar = Registrar.from_checkpoint(device="cpu", preprocess=pre, engine=eng)
+        startup = time.perf_counter() - t_load              # weights, runtime session, warm_start
 
         def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
             r = registrar.register(src, tgt)
             return r.T_target_source, r.timings
     else:
+        t_load = time.perf_counter()
         baselines.load_open3d()
+        startup = time.perf_counter() - t_load
         name, config = method, baselines.BaselineConfig()
         if method == "ransac-2threads":
             name, config.ransac_threads = "ransac", 2
@@ -124,17 +129,22 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
         def run(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
             r = baselines.register(name, src, tgt, config)
             return r.T_target_source, r.timings
-    run(first[0], first[1])                                  # warm-up: lazy imports, first kernels
+    t0 = time.perf_counter()
+    run(first[0], first[1])              # the cold call (lazy imports, first kernels), not in the stats
+    first_call = time.perf_counter() - t0
     n_points = len(first[0])
     del first
     timings: dict[str, list[float]] = {}
     errors = []
+    warm_first_pair = []                 # the same pair warm, for the cold call's ratio
     for _ in range(repeats):
         for f in files:
             src, tgt, T = pair(f)
             t0, c0 = time.perf_counter(), time.process_time()
             T_est, stages = run(src, tgt)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            if f == files[0]:
+                warm_first_pair.append(wall)
             for k, v in stages.items():
                 timings.setdefault(k, []).append(v)
             timings.setdefault("wall", []).append(wall)
@@ -146,6 +156,9 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
         "stages": {k: _stats(v) for k, v in timings.items()},
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "rss_after_loading_mb": rss_loaded,
+        "startup_s": startup,                             # Registrar.from_checkpoint / Open3D import
+        "first_call_ms": 1000.0 * first_call,
+        "first_call_ratio": first_call / float(np.median(warm_first_pair)),   # cold / warm, one pair
         "median_rotation_error_deg": float(np.median(errors)),
         "jemalloc": _jemalloc_loaded(),
     }
@@ -196,7 +209,8 @@ def run_one(method: str, files: list[Path], repeats: int, allocator: str, thread
 def table(results: list[dict[str, Any]]) -> str:
     """Markdown: one row per (size, allocator, method)."""
     head = ("| input points | allocator | method | total median ms | total p90 ms | "
-            + " | ".join(f"{s} ms" for s in ENGINE_STAGES) + " | CPU ms | peak RSS MB | median Error(R) deg |")
+            + " | ".join(f"{s} ms" for s in ENGINE_STAGES)
+            + " | CPU ms | peak RSS MB | first call ms (x warm) | median Error(R) deg |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in results:
         st = r["stages"]
@@ -208,7 +222,9 @@ def table(results: list[dict[str, Any]]) -> str:
         cells.append(f"{st['cpu']['median_ms']:.0f}" if "cpu" in st else "-")
         lines.append(f"| {r['points']:,} | {r['allocator']} | {r['method']} | "
                      f"{st['total']['median_ms']:.0f} | {st['total']['p90_ms']:.0f} | "
-                     + " | ".join(cells) + f" | {r['peak_rss_mb']:.0f} | {r['median_rotation_error_deg']:.2f} |")
+                     + " | ".join(cells) + f" | {r['peak_rss_mb']:.0f} | "
+                     f"{r['first_call_ms']:.0f} ({r['first_call_ratio']:.2f}x) | "
+                     f"{r['median_rotation_error_deg']:.2f} |")
     return "\n".join(lines)
 
 

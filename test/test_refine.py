@@ -1,0 +1,72 @@
+"""The engine's Open3D stages on the tensor pipeline: the same numbers as the legacy pipeline the
+network was trained with (features) and the engine used before (ICP)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cegc_ros.geometry import normals_and_fpfh
+from cegc_ros.metrics import rotation_error_deg
+from cegc_ros.refine import icp
+
+
+def room_corner(n: int, seed: int) -> np.ndarray:
+    """(n, 3) noisy samples of a floor, two walls and a box: a 3 m corner of a room."""
+    rng = np.random.default_rng(seed)
+    k = n // 4
+    floor = np.c_[rng.uniform(0, 3, (k, 2)), np.zeros(k)]
+    wall_x = np.c_[np.zeros(k), rng.uniform(0, 3, k), rng.uniform(0, 2.5, k)]
+    wall_y = np.c_[rng.uniform(0, 3, k), np.zeros(k), rng.uniform(0, 2.5, k)]
+    u = rng.uniform(0, 0.6, (n - 3 * k, 2))
+    box = np.c_[1.2 + u[:, 0], 1.0 + u[:, 1], np.full(len(u), 0.6)]       # a box's top
+    return np.concatenate([floor, wall_x, wall_y, box]) + rng.normal(0, 0.003, (n, 3))
+
+
+def legacy_icp(source, target, T, max_distance, iterations):
+    import open3d as o3d
+    reg = o3d.pipelines.registration
+    ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    pt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    pt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * max_distance, max_nn=30))
+    return np.asarray(reg.registration_icp(ps, pt, max_distance, T, reg.TransformationEstimationPointToPlane(),
+                                           reg.ICPConvergenceCriteria(max_iteration=iterations)).transformation)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_icp_gives_the_legacy_pipelines_pose_and_recovers_the_truth(seed):
+    target = room_corner(4000, seed)
+    T_true = np.eye(4)
+    T_true[:3, :3] = Rotation.from_rotvec([0.01, -0.02, 0.03]).as_matrix()
+    T_true[:3, 3] = [0.03, -0.02, 0.01]
+    source = (target - T_true[:3, 3]) @ T_true[:3, :3]            # T_true maps source onto target
+    source = source + np.random.default_rng(seed + 10).normal(0, 0.002, source.shape)
+    start = np.eye(4)
+    T = icp(source, target, start, 0.1, 30, max_points=10000)
+    assert np.abs(T - legacy_icp(source, target, start, 0.1, 30)).max() < 1e-9
+    assert rotation_error_deg(T_true[:3, :3], T[:3, :3]) < 0.1
+    assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.005
+    # far from the truth nothing within reach: ICP leaves the start alone or moves little
+    assert np.isfinite(icp(source, target + 50.0, start, 0.1, 30, max_points=10000)).all()
+
+
+def test_features_match_the_legacy_pipeline_the_network_was_trained_on():
+    import open3d as o3d
+    pts = room_corner(1024, 3) / 6.0                                 # normalised-frame size
+    normals, desc = normals_and_fpfh(pts)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.10, max_nn=30))
+    n = np.asarray(pcd.normals)
+    n[((pts.mean(0) - pts) * n).sum(1) < 0] *= -1.0
+    pcd.normals = o3d.utility.Vector3dVector(n)
+    ref = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=0.25, max_nn=200)).data).T / 100.0
+    assert desc.shape == (1024, 33) and normals.shape == (1024, 3)
+    assert np.abs(normals - n).max() < 1e-5                           # same orientation too
+    np.testing.assert_allclose(desc.reshape(-1, 3, 11).sum(2), 2.0, atol=1e-4)   # 3 histograms
+    np.testing.assert_allclose(ref.reshape(-1, 3, 11).sum(2), 2.0, atol=1e-4)
+    row = np.abs(desc - ref).sum(1)                                   # L1 of a row of mass 6
+    assert np.median(row) < 1e-3 and row.mean() < 0.005               # rounding at bin edges
+    cosine = (desc * ref).sum(1) / np.linalg.norm(desc, axis=1) / np.linalg.norm(ref, axis=1)
+    assert cosine.min() > 0.9999
