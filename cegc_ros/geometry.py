@@ -135,6 +135,11 @@ def subsample(points: np.ndarray, n: int, rng: np.random.Generator, sampling: st
     return np.sort(pick)
 
 
+#: Grids of at most this many cells count their occupied cells with a table (np.bincount)
+#: instead of np.unique's hashing: the same count in about a third of the time.
+BINCOUNT_CELLS = 1 << 22
+
+
 def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray | None:
     """(N, 3) -> (N,) int64 cell ids of the coarsest cubic grid found (bisection on the cell
     size) with at least n and, when reachable, under 1.15 n occupied cells; None when even the
@@ -144,15 +149,25 @@ def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray 
     hi_size, lo_size = float(span.max()), 0.0
     if not hi_size > 0:
         return None
+    rel = points - lo
     best = None
     for _ in range(iterations):
         size = 0.5 * (hi_size + lo_size)
-        key = np.floor((points - lo) / size).astype(np.int64)
-        dims = key.max(0) + 1
-        ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-        count = len(np.unique(ids))
+        key = np.floor(rel / size)                     # float64 cell indices, exact integers
+        # the largest index is that of the farthest point: no pass over the keys for it
+        dims = np.floor(span / size) + 1.0
+        cells = float(dims.prod())
+        if cells < 2.0 ** 53:                          # float64 ids are exact integers
+            ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        else:                                          # a grid this fine (far-apart clusters): int64
+            k, d = key.astype(np.int64), dims.astype(np.int64)
+            ids = (k[:, 0] * d[1] + k[:, 1]) * d[2] + k[:, 2]
+        if cells <= BINCOUNT_CELLS:                    # a table of every cell: no hashing
+            count = int(np.count_nonzero(np.bincount(ids.astype(np.intp), minlength=int(cells))))
+        else:
+            count = len(np.unique(ids))
         if count >= n:
-            best, lo_size = ids, size
+            best, lo_size = ids.astype(np.int64), size
             if count < 1.15 * n:
                 break
         else:

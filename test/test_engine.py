@@ -170,6 +170,45 @@ def test_grid_sampling_spreads_points_evenly_where_random_follows_the_density():
         subsample(pts, 100, rng, "fps")
 
 
+def _grid_cells_reference(points, n, iterations=20):
+    """The bisection of geometry._grid_cells written plainly: int64 keys, np.unique counts."""
+    lo = points.min(0)
+    hi_size, lo_size, best = float((points.max(0) - lo).max()), 0.0, None
+    for _ in range(iterations):
+        size = 0.5 * (hi_size + lo_size)
+        key = np.floor((points - lo) / size).astype(np.int64)
+        dims = key.max(0) + 1
+        ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        count = len(np.unique(ids))
+        if count >= n:
+            best, lo_size = ids, size
+            if count < 1.15 * n:
+                break
+        else:
+            hi_size = size
+    return best
+
+
+@pytest.mark.parametrize("case", ["surface", "blob", "far_clusters", "sparse"])
+def test_grid_cells_counted_by_table_are_the_plain_bisections(case):
+    """Table counts (np.bincount) and float64 ids choose exactly the grid that int64 ids and
+    np.unique choose, also where the grid is too fine for a table or for float64 ids."""
+    from cegc_ros.geometry import _grid_cells
+    rng = np.random.default_rng(4)
+    pts = {"surface": scene(14000, seed=5),
+           "blob": rng.normal(size=(5000, 3)),
+           "far_clusters": np.r_[rng.normal(size=(3000, 3)) * 1e-4, [[1e3, 1e3, 1e3]]],
+           "sparse": rng.uniform(-1, 1, (700, 3))}[case]
+    for n in (256, 512, 1024):
+        ref, got = _grid_cells_reference(pts, n), _grid_cells(pts, n)
+        if ref is None:
+            assert got is None
+            continue
+        _, ref_cells = np.unique(ref, return_inverse=True)
+        _, got_cells = np.unique(got, return_inverse=True)
+        assert got.dtype == np.int64 and np.array_equal(ref_cells, got_cells)
+
+
 def test_covariance_shrinks_with_more_consistent_correspondences():
     rng = np.random.default_rng(0)
     src = rng.uniform(-1, 1, (200, 3))
