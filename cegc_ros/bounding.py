@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PreprocessConfig
-from .geometry import checked_cloud, voxel_downsample
+from .geometry import BINCOUNT_CELLS, checked_cloud, column_max, column_min, voxel_downsample
 
 
 @dataclass
@@ -117,8 +117,14 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     # Any two points in one cube of side radius / sqrt(3) are nearer than the radius, so a point
     # whose cube holds ISOLATED_MIN_NEIGHBOURS others is kept without a search (on a surface
     # almost every point: 14k-point clouds 15 -> 5 ms); only the rest are searched.
-    keep = _crowded_cells(points, 0.999 * radius / np.sqrt(3.0), ISOLATED_MIN_NEIGHBOURS + 1)
+    # A second grid shifted by half a cube keeps most of the points the first one cut off at
+    # a cube's face (doubtful points 21% -> about 8% on gridded fragments).
+    cube = 0.999 * radius / np.sqrt(3.0)
+    keep = _crowded_cells(points, cube, ISOLATED_MIN_NEIGHBOURS + 1)
     doubt = np.flatnonzero(~keep)
+    if len(doubt):
+        keep |= _crowded_cells(points, cube, ISOLATED_MIN_NEIGHBOURS + 1, shift=0.5)
+        doubt = np.flatnonzero(~keep)
     if len(doubt):
         # The k-th nearest other point within the radius (k = ISOLATED_MIN_NEIGHBOURS; the first
         # neighbour found is the point itself): cheaper than counting the whole ball.
@@ -128,14 +134,18 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     return points[keep], int(len(points) - keep.sum())
 
 
-def _crowded_cells(points: np.ndarray, cell: float, at_least: int) -> np.ndarray:
-    """(N,) bool: the point's cube of the grid of side ``cell`` holds at least ``at_least``
-    points (itself included)."""
-    key = np.floor((points - points.min(0)) / cell).astype(np.int64)
-    dims = key.max(0) + 1
+def _crowded_cells(points: np.ndarray, cell: float, at_least: int, shift: float = 0.0) -> np.ndarray:
+    """(N,) bool: the point's cube of the grid of side ``cell`` (its origin ``shift`` cells
+    below the points' minimum) holds at least ``at_least`` points (itself included)."""
+    lo = column_min(points) - shift * cell
+    key = np.floor((points - lo) / cell).astype(np.int64)
+    dims = np.floor((column_max(points) - lo) / cell).astype(np.int64) + 1   # = key.max(0) + 1
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0 ** 62:   # ids would overflow
         return np.zeros(len(points), bool)
     ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    cells = float(dims[0]) * float(dims[1]) * float(dims[2])
+    if cells <= BINCOUNT_CELLS:                             # a table of every cell, no sorting
+        return np.bincount(ids, minlength=int(cells))[ids] >= at_least
     _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
     return counts[inverse] >= at_least
 
@@ -167,7 +177,7 @@ def clean_points(xyz: np.ndarray, min_range: float = 0.0, max_range: float = 0.0
 
 def extent(points: np.ndarray) -> float:
     """Largest side of the axis-aligned bounding box."""
-    return float((points.max(0) - points.min(0)).max())
+    return float((column_max(points) - column_min(points)).max())
 
 
 def robust_extent(points: np.ndarray, trim: float | None = None, seed: int = 0) -> float:

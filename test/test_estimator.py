@@ -127,17 +127,34 @@ def test_blocked_compatibility_matrices_equal_the_direct_ones(K):
     tgt = tgt + 100.0                                  # far from the origin: centring keeps precision
     hard, soft = compatibility_matrices(src, tgt, 0.05)
     ref_hard, ref_soft = _reference_matrices(src, tgt, 0.05)
-    assert hard.dtype == soft.dtype == np.float32 and hard.shape == (K, K)
+    assert hard.dtype == bool and soft.dtype == np.float32 and hard.shape == (K, K)
     # equal, except where the float32 rounding of the reference puts d_ij on the other side of
     # the threshold (the two round differently: float32 before vs after the difference)
     from scipy.spatial.distance import cdist
     d = np.abs(cdist(src, src) - cdist(tgt, tgt))
-    differ = hard != ref_hard
+    differ = hard != ref_hard.astype(bool)
     assert (np.abs(d[differ] - 0.05) < 1e-5).all()
     assert differ.sum() <= 1e-4 * K * K
     assert np.abs(soft - ref_soft).max() < 1e-4
     assert (np.diag(hard) == 0).all() and (np.diag(soft) == 0).all()
     assert hard.sum() > K                               # the inliers are compatible with each other
+
+
+@pytest.mark.parametrize("K", [5, 63, 64, 65, 700])
+def test_bit_packed_second_order_rows_equal_the_matrix_product(K):
+    from cegc_ros.estimator import second_order_rows
+    rng = np.random.default_rng(K)
+    C = rng.random((K, K)) < 0.15
+    C[: K // 3, : K // 3] = True                        # a consensus block, as inliers make
+    C = C | C.T
+    np.fill_diagonal(C, False)
+    rows = rng.choice(K, min(K, 40), replace=False)
+    F = C.astype(np.float32)
+    expected = F[rows] * (F[rows] @ F)
+    got = second_order_rows(C, rows)
+    assert got.dtype == np.float32 and got.shape == (len(rows), K)
+    np.testing.assert_array_equal(got, expected)
+    assert expected.max() >= K // 3 - 2                 # the block's rows count its members
 
 
 def test_the_faster_estimator_keeps_the_inlier_sets_of_the_direct_one(monkeypatch):

@@ -70,3 +70,25 @@ def test_features_match_the_legacy_pipeline_the_network_was_trained_on():
     assert np.median(row) < 1e-3 and row.mean() < 0.005               # rounding at bin edges
     cosine = (desc * ref).sum(1) / np.linalg.norm(desc, axis=1) / np.linalg.norm(ref, axis=1)
     assert cosine.min() > 0.9999
+
+
+def test_fitnesses_count_exactly_the_points_within_the_distance():
+    """The batched k-d-tree fitness (its search bounded at the distance itself) against brute
+    force, with source points placed exactly at the distance from a target point."""
+    from scipy.spatial.distance import cdist
+
+    from cegc_ros.refine import fitnesses
+    rng = np.random.default_rng(3)
+    target = rng.uniform(0, 1, (300, 3))
+    source = np.concatenate([target[:100] + rng.normal(0, 0.01, (100, 3)),
+                             target[100:150] + [0.05, 0.0, 0.0],        # exactly at 0.05 m
+                             rng.uniform(0, 1, (150, 3))])
+    R = Rotation.from_rotvec(rng.normal(0, 0.02, (6, 3))).as_matrix()
+    R[0] = np.eye(3)
+    t = rng.normal(0, 0.01, (6, 3))
+    t[0] = 0.0
+    got = fitnesses(R, t, source, target, 0.05)
+    moved = source[None] @ np.transpose(R, (0, 2, 1)) + t[:, None]
+    expected = np.array([(cdist(m, target).min(1) <= 0.05).mean() for m in moved])
+    np.testing.assert_array_equal(got, expected)
+    assert got[0] > 0.45                 # the 100 near points and the boundary ones that round inside
