@@ -63,3 +63,21 @@ def test_ratios_compare_the_engine_with_each_peer_of_the_same_size():
     lines = text.splitlines()
     assert lines[0] == "1,500 points (jemalloc): cegc / ransac 2.00x, sc2pcr+icp 0.50x"
     assert lines[1] == "20,000 points (jemalloc): cegc / ransac 0.25x"
+
+
+def test_the_machine_line_names_the_cpu_and_its_vector_unit(monkeypatch):
+    import builtins
+    import io
+
+    from cegc_ros.evaluation import report
+    real_open = builtins.open
+
+    def fake(flags):
+        text = f"processor\t: 0\nmodel name\t: AMD EPYC 9R45\nflags\t\t: fpu sse2 {flags}\n"
+        return lambda path, *a, **k: io.StringIO(text) if path == "/proc/cpuinfo" else real_open(path, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", fake("avx avx2 avx512f avx512bw"))
+    assert report.cpu_model() == "AMD EPYC 9R45, AVX-512"
+    monkeypatch.setattr(builtins, "open", fake("avx avx2"))
+    assert report.cpu_model() == "AMD EPYC 9R45, AVX2"
+    assert report.machine_line().startswith("AMD EPYC 9R45, AVX2 (")

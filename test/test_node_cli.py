@@ -102,7 +102,7 @@ def test_replay_errors_are_one_line(args, code, expected):
 @pytest.mark.parametrize("module, args, expected", [
     ("cegc_ros.tools.bench_contention", ["--settings", "turbo"],
      "bench_contention: error: unknown setting 'turbo'; known: default, omp1, passive, "
-     "omp1_o3d1, passive_o3d1, api, ransac (see --help)"),
+     "omp1_o3d1, passive_o3d1, api, api1, ransac (see --help)"),
     ("cegc_ros.tools.bench_node", ["--pairs", "many"],
      "bench_node: error: argument --pairs: invalid int value: 'many' (see --help)"),
 ])

@@ -241,10 +241,27 @@ def write_outputs(ev: Evaluation, out_dir: str | Path) -> dict[str, Path]:
     return paths
 
 
+def cpu_model() -> str:
+    """The CPU's model name and widest vector unit ("AMD EPYC, AVX2"), from /proc/cpuinfo;
+    the machine's architecture where that is not readable. Numerics and speed differ between
+    AVX2 and AVX-512 machines, so every benchmark names it."""
+    import platform
+    try:
+        info = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
+    except OSError:
+        return platform.machine()
+    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
+                 if line.startswith("model name")), platform.machine())
+    flags = next((line.split(":", 1)[1].split() for line in info.splitlines()
+                  if line.startswith("flags")), [])
+    vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else ""
+    return f"{name}, {vector}" if vector else name
+
+
 def machine_line() -> str:
     """CPU, OS, Python and the load average when the evaluation ran (timings depend on it)."""
     import os
     import platform
     load = " ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
-    return (f"{platform.machine()} {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
-            f"python {platform.python_version()}, load average {load}")
+    return (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPU, {platform.system()} "
+            f"{platform.release()}, python {platform.python_version()}, load average {load}")

@@ -20,6 +20,8 @@ Settings (environment of the engine process, plus Open3D's thread limit):
   api           nothing set, and the engine made as a user's script makes it:
                 ``from cegc_ros.engine import Registrar; Registrar.from_checkpoint()`` (what
                 the engine sets itself on import is what it gets)
+  api1          as ``api`` with one thread: ``EngineConfig(threads=1)`` (torch and ONNX
+                Runtime) and open3d.utility.set_max_threads(1)
   ransac        the peer: Open3D RANSAC+FPFH (cegc_ros.baselines, its defaults) on the same
                 pairs, nothing set, so the engine's slow-down is compared with the peer's
 
@@ -52,6 +54,7 @@ SETTINGS: dict[str, tuple[dict[str, str], int]] = {
     "omp1_o3d1": ({"OMP_NUM_THREADS": "1"}, 1),
     "passive_o3d1": ({"OMP_WAIT_POLICY": "PASSIVE"}, 1),
     "api": ({}, 0),
+    "api1": ({}, 1),
     "ransac": ({}, 0),
 }
 #: Variables that would change what a setting means; removed from the child's environment.
@@ -70,9 +73,11 @@ def _runner(setting: str) -> Any:
         from cegc_ros import baselines
         baselines.load_open3d()
         return lambda src, tgt: baselines.register("ransac", src, tgt)
-    if setting == "api":
+    if setting in ("api", "api1"):
+        from cegc_ros.config import EngineConfig
         from cegc_ros.engine import Registrar
-        return Registrar.from_checkpoint(device="cpu").register
+        threads = 1 if setting == "api1" else 0
+        return Registrar.from_checkpoint(device="cpu", engine=EngineConfig(threads=threads)).register
     from cegc_ros.node.engine_process import load_registrar
     from cegc_ros.node.params import SECTIONS
     return load_registrar(SECTIONS["preprocess"](), SECTIONS["engine"](device="cpu")).register

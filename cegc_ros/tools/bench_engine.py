@@ -274,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
         if not sizes or min(sizes) < 64 or args.pairs < 1 or args.repeats < 1:
             raise BenchError("--sizes must be >= 64 points, --pairs and --repeats >= 1")
         results = []
-        header = (f"{platform.machine()} {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
+        from cegc_ros.evaluation.report import cpu_model
+        header = (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
                   f"python {platform.python_version()}; start: {load_line()}")
         print(header, flush=True)
         for size in sizes:
