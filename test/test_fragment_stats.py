@@ -1,0 +1,53 @@
+"""fragment_stats: the statistics that compare synthetic with real fragments measure what they say."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cegc_ros.tools import fragment_stats as F
+
+
+def plane(n: int, sigma: float, seed: int) -> np.ndarray:
+    """(n, 3) points on a 2 m x 2 m floor with Gaussian height noise sigma (m)."""
+    rng = np.random.default_rng(seed)
+    return np.c_[rng.uniform(0, 2, (n, 2)), rng.normal(0, sigma, n)]
+
+
+def test_noise_spacing_and_planarity_of_a_noisy_floor():
+    flat = F.cloud_stats(F._grid(plane(40000, 0.0005, 0), F.GRID))
+    rough = F.cloud_stats(F._grid(plane(40000, 0.01, 0), F.GRID))
+    assert flat["noise_mm"] < 1.0 < rough["noise_mm"]
+    assert flat["planar"] > 0.95 and rough["planar"] < flat["planar"]
+    assert 15.0 < flat["spacing_mm"] < 30.0                  # about one 2.5 cm voxel apart
+    assert flat["extent_m"] == pytest.approx(2.0, abs=0.05)
+
+
+def test_overlap_and_fpfh_inliers_of_a_room_corner_and_its_moved_half():
+    from scipy.spatial.transform import Rotation
+    from test_refine import room_corner
+
+    corner = room_corner(60000, 1)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.4]).as_matrix()
+    T[:3, 3] = [0.3, -0.2, 0.1]
+    half = corner[corner[:, 0] < 1.5]                        # the source: half the corner
+    target = corner @ T[:3, :3].T + T[:3, 3]                 # the whole corner, moved
+    s = F.pair_stats(half, target, T)
+    assert s["overlap"] > 0.9                                # all of the source lies on the target
+    wrong = np.eye(4)
+    wrong[:3, 3] = [5.0, 0.0, 0.0]
+    assert F.pair_stats(half, target, wrong)["overlap"] == 0.0
+    assert np.isnan(F.pair_stats(half, target, wrong)["fpfh_inlier"])
+    # the same points on both sides: every descriptor finds itself; 1 cm of noise on the target
+    # makes the corner's planes ambiguous, as real sensor noise does
+    same = F.pair_stats(corner, corner, np.eye(4))["fpfh_inlier"]
+    noisy = corner + np.random.default_rng(2).normal(0, 0.01, corner.shape)
+    assert same > 0.95 and F.pair_stats(corner, noisy, np.eye(4))["fpfh_inlier"] < 0.5 * same
+
+
+def test_bands_summarise_by_the_measured_overlap():
+    stats = [dict.fromkeys(F.COLUMNS, 1.0) | {"overlap": o} for o in (0.1, 0.2, 0.4, 0.9)]
+    rows = F.summarise(stats)
+    assert [(name.split("overlap ")[1], n) for name, n, _ in rows] == [("0%-30%", 2), ("30%-50%", 1), ("50%-100%", 1)]
+    assert rows[0][2]["overlap"] == pytest.approx(0.15)
