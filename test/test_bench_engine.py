@@ -81,3 +81,26 @@ def test_the_machine_line_names_the_cpu_and_its_vector_unit(monkeypatch):
     monkeypatch.setattr(builtins, "open", fake("avx avx2"))
     assert report.cpu_model() == "AMD EPYC 9R45, AVX2"
     assert report.machine_line().startswith("AMD EPYC 9R45, AVX2 (")
+
+
+def test_real_folders_become_labelled_benchmark_pairs(tmp_path, capsys):
+    rng = np.random.default_rng(4)
+    one = tmp_path / "lidar"
+    one.mkdir()
+    src = rng.uniform(0, 10, (500, 3)).astype(np.float32)
+    np.save(one / "source.npy", src)
+    np.save(one / "target.npy", src + 1.0)
+    T = np.eye(4)
+    T[:3, 3] = 1.0
+    np.savetxt(one / "T_target_source.txt", T)
+    files = B.real_pair_files(one, 3, tmp_path / "cache")
+    assert [f.name for f in files] == ["real_lidar_lidar.npz"]
+    with np.load(files[0]) as z:
+        np.testing.assert_array_equal(z["source"], src)
+        np.testing.assert_array_equal(z["T"], T)
+    row = {"points": 500, "set": "lidar", "allocator": "jemalloc", "method": "cegc",
+           "stages": {"total": {"median_ms": 90.0, "p90_ms": 95.0}}}
+    peer = dict(row, method="ransac", stages={"total": {"median_ms": 45.0, "p90_ms": 50.0}})
+    assert B.ratios([row, peer]) == "500 points, lidar (jemalloc): cegc / ransac 2.00x"
+    assert B.main(["--real", str(tmp_path / "nothing"), "--sizes", "1500", "--cache", str(tmp_path / "c")]) == 1
+    assert "--real" in capsys.readouterr().err

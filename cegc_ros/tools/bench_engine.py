@@ -3,14 +3,16 @@ peak memory, with and without jemalloc, and RANSAC and SC2-PCR on the same pairs
 
     python -m cegc_ros.tools.bench_engine [--sizes 1500,20000,300000,5000000] [--pairs 3]
         [--repeats 2] [--methods cegc,ransac,sc2pcr] [--allocators jemalloc,system]
-        [--threads 0] [--cache .cache/bench] [--json runs/bench_engine.json]
+        [--threads 0] [--real DIR ...] [--cache .cache/bench] [--json runs/bench_engine.json]
 
 Pairs (generated once into ``--cache``, float32 .npy, metres): at 1.5k points the synthetic
 7Scenes-protocol test pairs (1536-point crops, normalised units, what the paper's 7Scenes
 benchmark feeds); from 20k up synthetic test-split fragment pairs of two Kinect-like views
 (cegc_ros.data: 25-35k points each), subsampled to the size, or densified above it: each
 point repeated with Gaussian jitter (sigma 3 mm, about a third of the fragments' spacing), the
-way a denser sensor would sample the same surfaces. The ground truth is unchanged.
+way a denser sensor would sample the same surfaces. The ground truth is unchanged. ``--real
+DIR`` adds the pairs of a real folder as they are (the Stanford bunny scans, ~35-40k points;
+the LiDAR pair), labelled by the folder's name.
 
 Each (size, allocator, method) runs in a fresh subprocess, so that its peak resident memory
 (``ru_maxrss``) is its own: one loaded pair at a time (as a node holds it), torch, Open3D and
@@ -85,6 +87,29 @@ def make_pairs(size: int, pairs: int, cache: Path) -> list[Path]:
             np.savez(tmp, source=src.astype(np.float32), target=tgt.astype(np.float32),
                      T=p.T_target_source)
             tmp.replace(path)
+        out.append(path)
+    return out
+
+
+def real_pair_files(real_dir: Path, pairs: int, cache: Path) -> list[Path]:
+    """``pairs`` evenly spaced pairs of a real folder (``cegc-eval --real-dir`` layout, e.g. the
+    bunny scans or the LiDAR pair) as .npz benchmark pairs in ``cache``; BenchError when the
+    folder holds none."""
+    from cegc_ros.evaluation import EvalError
+    from cegc_ros.evaluation.datasets import real_pairs
+    try:
+        found = [p for p in real_pairs(real_dir) if p.T_gt is not None]
+    except (OSError, ValueError, EvalError) as err:
+        raise BenchError(f"--real {real_dir}: {err}") from err
+    if not found:
+        raise BenchError(f"--real {real_dir}: no pairs with ground truth")
+    cache.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in np.unique(np.linspace(0, len(found) - 1, min(pairs, len(found))).astype(int)):
+        p = found[int(i)]
+        path = cache / f"real_{Path(real_dir).name}_{p.pair_id}.npz"
+        np.savez(path, source=np.asarray(p.source, np.float32), target=np.asarray(p.target, np.float32),
+                 T=p.T_gt)
         out.append(path)
     return out
 
@@ -220,7 +245,8 @@ def table(results: list[dict[str, Any]]) -> str:
             key = s if r["method"] == "cegc" else peer.get(s)
             cells.append(f"{st[key]['median_ms']:.0f} / {st[key]['p90_ms']:.0f}" if key in st else "-")
         cells.append(f"{st['cpu']['median_ms']:.0f}" if "cpu" in st else "-")
-        lines.append(f"| {r['points']:,} | {r['allocator']} | {r['method']} | "
+        label = f"{r['points']:,}" + (f" ({r['set']})" if r.get("set") else "")
+        lines.append(f"| {label} | {r['allocator']} | {r['method']} | "
                      f"{st['total']['median_ms']:.0f} | {st['total']['p90_ms']:.0f} | "
                      + " | ".join(cells) + f" | {r['peak_rss_mb']:.0f} | "
                      f"{r['first_call_ms']:.0f} ({r['first_call_ratio']:.2f}x) | "
@@ -231,13 +257,15 @@ def table(results: list[dict[str, Any]]) -> str:
 def ratios(results: list[dict[str, Any]]) -> str:
     """One line per (size, allocator): the engine's median total over each peer's, same run."""
     out = []
-    groups: dict[tuple[int, str], dict[str, float]] = {}
+    groups: dict[tuple[int, str, str], dict[str, float]] = {}
     for r in results:
-        groups.setdefault((r["points"], r["allocator"]), {})[r["method"]] = r["stages"]["total"]["median_ms"]
-    for (points, allocator), med in groups.items():
+        key = (r["points"], r.get("set", ""), r["allocator"])
+        groups.setdefault(key, {})[r["method"]] = r["stages"]["total"]["median_ms"]
+    for (points, name, allocator), med in groups.items():
         if "cegc" in med and len(med) > 1:
             parts = [f"{m} {med['cegc'] / v:.2f}x" for m, v in med.items() if m != "cegc" and v > 0]
-            out.append(f"{points:,} points ({allocator}): cegc / " + ", ".join(parts))
+            what = f"{points:,} points" + (f", {name}" if name else "")
+            out.append(f"{what} ({allocator}): cegc / " + ", ".join(parts))
     return "\n".join(out)
 
 
@@ -259,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--allocators", default=",".join(ALLOCATORS))
     ap.add_argument("--threads", type=int, default=0, help="OMP_NUM_THREADS of the workers (0: default)")
+    ap.add_argument("--real", action="append", default=[], type=Path, metavar="DIR",
+                    help="also time the pairs of this real folder (cegc-eval --real-dir layout: the "
+                         "bunny scans, the LiDAR pair); repeatable")
     ap.add_argument("--cache", default=".cache/bench", help="where the generated pairs are kept")
     ap.add_argument("--json", default=None, help="write every number to this file")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
@@ -271,19 +302,22 @@ def main(argv: list[str] | None = None) -> int:
         sizes = _csv(args.sizes, int)
         methods = _csv(args.methods, str, METHODS + EXTRA_METHODS)
         allocators = _csv(args.allocators, str, ALLOCATORS)
-        if not sizes or min(sizes) < 64 or args.pairs < 1 or args.repeats < 1:
-            raise BenchError("--sizes must be >= 64 points, --pairs and --repeats >= 1")
+        if (not sizes and not args.real) or min(sizes, default=64) < 64 or args.pairs < 1 or args.repeats < 1:
+            raise BenchError("--sizes must be >= 64 points (empty only with --real), --pairs and --repeats >= 1")
         results = []
         from cegc_ros.evaluation.report import cpu_model
         header = (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
                   f"python {platform.python_version()}; start: {load_line()}")
         print(header, flush=True)
-        for size in sizes:
-            files = make_pairs(size, args.pairs, Path(args.cache))
+        sets = [(str(size), "", make_pairs(size, args.pairs, Path(args.cache))) for size in sizes]
+        sets += [(d.name, d.name, real_pair_files(d, args.pairs, Path(args.cache))) for d in args.real]
+        for label, name, files in sets:
             for allocator in allocators:
                 for method in methods:
                     r = run_one(method, files, args.repeats, allocator, args.threads)
-                    print(f"{size} {allocator} {method}: total median {r['stages']['total']['median_ms']:.0f} ms, "
+                    if name:
+                        r["set"] = name
+                    print(f"{label} {allocator} {method}: total median {r['stages']['total']['median_ms']:.0f} ms, "
                           f"peak RSS {r['peak_rss_mb']:.0f} MB ({r['load_after']})", flush=True)
                     results.append(r)
     except BenchError as err:
@@ -294,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(ratios(results))
     print(f"\n{header}; end: {load_line()}")
-    print("command: python -m cegc_ros.tools.bench_engine " + " ".join(argv if argv is not None else sys.argv[1:]))
+    import shlex
+    print("command: python -m cegc_ros.tools.bench_engine " + shlex.join(argv if argv is not None else sys.argv[1:]))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"machine": header, "results": results}, indent=2) + "\n")
