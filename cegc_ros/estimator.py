@@ -39,7 +39,8 @@ confident matches out (a confidence never makes two correspondences compatible).
 ``svd`` is the paper's estimator: one confidence-weighted Kabsch over all correspondences.
 
 Costs (K correspondences, S seeds): the compatibility matrix is K x K (K is capped by the
-caller, ``engine.max_correspondences``), second order only for the S seed rows: O(S K^2).
+caller, ``engine.max_correspondences``), second order only for the S seed rows: one popcount
+of two bit-packed rows (K / 64 words) per compatible (seed, j) pair, at most O(S K^2 / 64).
 """
 
 from __future__ import annotations
