@@ -160,16 +160,20 @@ def compatibility_matrices(src: np.ndarray, tgt: np.ndarray, d_thr: float
     soft = np.empty((K, K), np.float32)
     d_thr32 = np.float32(d_thr)
     inv2 = np.float32(1.0 / (d_thr * d_thr))
+    # d_ij = d_ji exactly in float32 (the same squares summed in the same order), so each block
+    # computes its columns from its own first row on and the lower triangle is its mirror.
     for a in range(0, K, COMPAT_BLOCK):
         b = min(a + COMPAT_BLOCK, K)
-        ds = _distances(s[:, a:b], s)
-        ds -= _distances(t[:, a:b], t)
-        np.abs(ds, out=ds)                                                 # d_ij, (b - a, K)
-        np.less(ds, d_thr32, out=hard[a:b])
+        ds = _distances(s[:, a:b], s[:, a:])
+        ds -= _distances(t[:, a:b], t[:, a:])
+        np.abs(ds, out=ds)                                                 # d_ij, (b - a, K - a)
+        np.less(ds, d_thr32, out=hard[a:b, a:])
         np.square(ds, out=ds)
         ds *= -inv2
         ds += np.float32(1.0)
-        np.maximum(ds, np.float32(0.0), out=soft[a:b])
+        np.maximum(ds, np.float32(0.0), out=soft[a:b, a:])
+        hard[b:, a:b] = hard[a:b, b:].T
+        soft[b:, a:b] = soft[a:b, b:].T
     np.fill_diagonal(hard, False)
     np.fill_diagonal(soft, 0.0)
     return hard, soft
