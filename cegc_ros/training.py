@@ -58,6 +58,8 @@ class Stage:
     noise_prob: float = 1.0      # share of pairs that get that extra noise (the rest: data.noise_sigma)
     min_overlap: float = 0.15    # two-fragment pairs: overlap range drawn from (curriculum)
     max_overlap: float = 1.0
+    low_overlap_share: float = 0.0   # share of different-view draws made among the pair cache's
+    low_overlap_max: float = 0.3     # pairs of overlap in [min_overlap, low_overlap_max] (0: off)
 
 
 @dataclass
@@ -160,6 +162,7 @@ class PairSampler:
         for f in fragments:
             by_scene.setdefault(int(f.scene_seed), []).append(f)
         self.scenes = [v for v in by_scene.values() if len(v) >= 2]
+        self._bands: dict[tuple[float, float], np.ndarray] = {}
 
     def raw(self, rng: np.random.Generator, stage: Stage) -> Any:
         """One pair in metres (source, target, T_target_source, info)."""
@@ -183,6 +186,10 @@ class PairSampler:
     def _different_views(self, rng: np.random.Generator, stage: Stage) -> Any:
         """A different-view pair with overlap in [stage.min_overlap, stage.max_overlap], or None."""
         from .data.protocols import sample_fragments_pair
+        if self.pairs is not None and stage.low_overlap_share > 0 and rng.random() < stage.low_overlap_share:
+            band = self._overlap_band(stage.min_overlap, min(stage.max_overlap, stage.low_overlap_max))
+            if len(band):
+                return self.pairs[int(band[rng.integers(len(band))])]
         for _ in range(8):
             if self.pairs is not None:
                 pair = self.pairs[int(rng.integers(len(self.pairs)))]
@@ -195,6 +202,14 @@ class PairSampler:
             if stage.min_overlap <= pair.info["overlap"] <= stage.max_overlap:
                 return pair
         return None
+
+    def _overlap_band(self, lo: float, hi: float) -> np.ndarray:
+        """Indices of the pair cache's pairs with overlap in [lo, hi] (computed once per band)."""
+        key = (lo, hi)
+        if key not in self._bands:
+            overlaps = np.asarray(getattr(self.pairs, "overlaps", []), np.float64)
+            self._bands[key] = np.flatnonzero((overlaps >= lo) & (overlaps <= hi))
+        return self._bands[key]
 
     def to_tensors(self, source: np.ndarray, target: np.ndarray, T: np.ndarray, points: int,
                    rng: np.random.Generator) -> dict[str, torch.Tensor]:

@@ -301,3 +301,26 @@ def test_bf16_autocast_only_where_the_hardware_has_it(tmp_path):
     assert bf16_hardware("cpu", str(xeon))
     assert bf16_hardware("cuda:0", str(amd))
     assert not bf16_hardware("cpu", str(tmp_path / "missing"))
+
+
+def test_low_overlap_share_draws_that_share_from_the_low_overlap_band():
+    class FakeCache:
+        """A pair cache of 100 pairs, overlaps 0.00 .. 0.99; a pair's info carries its own."""
+        overlaps = np.arange(100) / 100.0
+
+        def __len__(self):
+            return 100
+
+        def __getitem__(self, i):
+            return SimpleNamespace(info={"overlap": self.overlaps[i]}, index=i)
+
+    sampler = PairSampler([], 0.0, {"with_features": True}, pairs=FakeCache())
+    base = dict(until_step=10**9, max_angle_deg=45.0, points=64, fragments_prob=1.0, min_overlap=0.1)
+    rng = np.random.default_rng(0)
+    plain = [sampler.raw(rng, Stage(**base)).info["overlap"] for _ in range(2000)]
+    low = [sampler.raw(rng, Stage(**base, low_overlap_share=0.5)).info["overlap"] for _ in range(2000)]
+    assert min(plain) >= 0.1 and min(low) >= 0.1              # the curriculum's floor holds
+    share_plain = np.mean(np.array(plain) <= 0.3)              # 21 of 90 eligible pairs: ~0.23
+    share_low = np.mean(np.array(low) <= 0.3)                  # half drawn from the band: ~0.62
+    assert share_plain == pytest.approx(21 / 90, abs=0.04)
+    assert share_low == pytest.approx(0.5 + 0.5 * 21 / 90, abs=0.04)
