@@ -383,7 +383,8 @@ def plot(path: Path, gt: np.ndarray, runs: list[MethodRun], title: str) -> None:
 
 def machine_line() -> str:
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    return (f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.python_implementation()} "
+    from cegc_ros.evaluation.report import cpu_model
+    return (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPUs, {platform.python_implementation()} "
             f"{platform.python_version()}, load average {load[0]:.1f} / {load[1]:.1f} / "
             f"{load[2]:.1f} (1/5/15 min) at the end of the run")
 
