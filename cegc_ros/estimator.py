@@ -191,11 +191,24 @@ def second_order_rows(hard: np.ndarray, rows: np.ndarray) -> np.ndarray:
     K = hard.shape[1]
     bits = np.packbits(hard, axis=1)
     bits = np.pad(bits, ((0, 0), (0, -bits.shape[1] % 8))).view(np.uint64)   # (K, ceil(K/64))
+    count = _popcount_rows
     out = np.zeros((len(rows), K), np.float32)
     for i, r in enumerate(rows):
         j = np.flatnonzero(hard[r])
-        out[i, j] = np.bitwise_count(bits[j] & bits[r]).sum(1, dtype=np.int32)
+        out[i, j] = count(bits[j] & bits[r])
     return out
+
+
+#: Set bits of every byte value: the popcount where numpy has no bitwise_count (numpy < 2.0, as
+#: Ubuntu 24.04's python3-numpy 1.26 under a colcon build).
+_BYTE_BITS = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(1).astype(np.int32)
+
+
+def _popcount_rows(words: np.ndarray) -> np.ndarray:
+    """(n, W) uint64 -> (n,) int32 set bits per row."""
+    if hasattr(np, "bitwise_count"):
+        return np.bitwise_count(words).sum(1, dtype=np.int32)
+    return _BYTE_BITS[words.view(np.uint8)].sum(1, dtype=np.int32)
 
 
 def _centred_columns(points: np.ndarray) -> np.ndarray:
