@@ -51,3 +51,15 @@ def test_bands_summarise_by_the_measured_overlap():
     rows = F.summarise(stats)
     assert [(name.split("overlap ")[1], n) for name, n, _ in rows] == [("0%-30%", 2), ("30%-50%", 1), ("50%-100%", 1)]
     assert rows[0][2]["overlap"] == pytest.approx(0.15)
+
+
+def test_smoothing_projects_a_rough_floor_onto_its_plane():
+    rough = plane(20000, 0.01, 3)
+    smooth = F.smooth_surface(rough, 16)
+    before = F.cloud_stats(F._grid(rough, F.GRID))["noise_mm"]
+    after = F.cloud_stats(F._grid(smooth, F.GRID))["noise_mm"]
+    assert after < 0.5 * before
+    lateral = np.linalg.norm(smooth[:, :2] - rough[:, :2], axis=1)       # moved along local normals
+    assert np.median(lateral) < 0.002 and lateral.max() < 0.02
+    assert np.abs(smooth[:, 2]).mean() < 0.5 * np.abs(rough[:, 2]).mean()
+    np.testing.assert_array_equal(F.smooth_surface(rough, 0), rough)       # 0: unchanged

@@ -1,7 +1,7 @@
 """Measure what differs between synthetic and real fragment pairs, on the same statistics.
 
     python -m cegc_ros.tools.fragment_stats .cache/pairs/val [--pairs 60] \
-        [--real-dir ../shared/data/real/sun3d] [--json runs/gap.json]
+        [--real-dir ../shared/data/real/sun3d] [--smooth K] [--json runs/gap.json]
 
 For every pair, both clouds on one 2.5 cm grid (the 3DMatch fragments' own voxel), in metres:
 
@@ -20,6 +20,8 @@ For every pair, both clouds on one 2.5 cm grid (the 3DMatch fragments' own voxel
 
 Synthetic pairs are the Kinect different-view pairs of a pair cache (``cegc-make-pairs``), evenly
 spaced, summarised by overlap band; real pairs (``--real-dir``, evaluation only) one row each.
+``--smooth K`` measures the synthetic clouds after :func:`smooth_surface` (a what-if for a
+TSDF-style smoothing in the generator, before changing it).
 Choose generator changes on what this shows, report the real numbers, never train on them.
 Errors: one line, exit code 1 (2 for usage).
 """
@@ -67,6 +69,23 @@ def cloud_stats(points: np.ndarray) -> dict[str, float]:
             "spacing_mm": 1e3 * float(np.median(d[:, 1])),
             "noise_mm": 1e3 * float(np.median(np.sqrt(ev[:, 0]))),
             "planar": float(np.mean(ev[:, 0] < PLANAR_SHARE * ev.sum(1)))}
+
+
+def smooth_surface(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, 3) -> each point projected onto the least-squares plane of its k nearest neighbours
+    (itself included): one pass of the moving-least-squares smoothing a TSDF fusion gives a
+    surface. ``k`` < 3 returns the points unchanged."""
+    from scipy.spatial import cKDTree
+    pts = np.asarray(points, np.float64)
+    if k < 3 or len(pts) <= k:
+        return pts
+    _, nn = cKDTree(pts).query(pts, k=k, workers=-1)
+    nb = pts[nn]
+    centre = nb.mean(1)
+    nb = nb - centre[:, None]
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    normal = vec[:, :, 0]                                            # smallest eigenvalue's vector
+    return pts - np.einsum("ni,ni->n", pts - centre, normal)[:, None] * normal
 
 
 def _grid(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -148,6 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("cache", type=Path, help="a pair cache (cegc-make-pairs); its Kinect different-view pairs")
     ap.add_argument("--pairs", type=int, default=60, help="evenly spaced synthetic pairs")
     ap.add_argument("--real-dir", type=Path, default=None, help="real pairs to report beside them (cegc-eval --real-dir layout)")
+    ap.add_argument("--smooth", type=int, default=0, metavar="K",
+                    help="what-if: project the synthetic clouds onto their K-neighbour planes "
+                         "(smooth_surface) before measuring; 0: as generated")
     ap.add_argument("--json", type=Path, default=None, help="write every pair's numbers here")
     args = ap.parse_args(argv)
     if args.pairs < 1:
@@ -164,7 +186,10 @@ def main(argv: list[str] | None = None) -> int:
         synthetic = []
         for i in idx:
             p = cache[int(i)]
-            synthetic.append(pair_stats(p.source, p.target, p.T_target_source))
+            src, tgt = p.source, p.target
+            if args.smooth:
+                src, tgt = smooth_surface(src, args.smooth), smooth_surface(tgt, args.smooth)
+            synthetic.append(pair_stats(src, tgt, p.T_target_source))
         rows = summarise(synthetic)
         real: list[dict[str, Any]] = []
         if args.real_dir is not None:
