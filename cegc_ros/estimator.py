@@ -191,11 +191,10 @@ def second_order_rows(hard: np.ndarray, rows: np.ndarray) -> np.ndarray:
     K = hard.shape[1]
     bits = np.packbits(hard, axis=1)
     bits = np.pad(bits, ((0, 0), (0, -bits.shape[1] % 8))).view(np.uint64)   # (K, ceil(K/64))
-    count = _popcount_rows
     out = np.zeros((len(rows), K), np.float32)
     for i, r in enumerate(rows):
         j = np.flatnonzero(hard[r])
-        out[i, j] = count(bits[j] & bits[r])
+        out[i, j] = _popcount_rows(bits[j] & bits[r])
     return out
 
 
@@ -254,7 +253,6 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     thr = float(inlier_distance)
     d_thr = cfg.compat_factor * thr
     hard, soft = compatibility_matrices(src, tgt, d_thr)                   # (K, K) bool, float32
-    hard = hard.astype(bool, copy=False)
 
     # 2. seeds: spectral score x confidence, non-maximum suppression in the source.
     score = _leading_eigenvector(soft, tol=SPECTRAL_TOL) * w

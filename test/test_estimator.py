@@ -113,9 +113,9 @@ def _reference_matrices(src, tgt, d_thr):
     pairwise distances in float64, cast to float32, then the hard and soft tests."""
     from scipy.spatial.distance import cdist
     d = np.abs(cdist(src, src).astype(np.float32) - cdist(tgt, tgt).astype(np.float32))
-    hard = (d < d_thr).astype(np.float32)
+    hard = d < d_thr
     soft = np.maximum(np.float32(1.0) - np.square(d / np.float32(d_thr)), np.float32(0.0))
-    np.fill_diagonal(hard, 0.0)
+    np.fill_diagonal(hard, False)
     np.fill_diagonal(soft, 0.0)
     return hard, soft
 
@@ -132,7 +132,7 @@ def test_blocked_compatibility_matrices_equal_the_direct_ones(K):
     # the threshold (the two round differently: float32 before vs after the difference)
     from scipy.spatial.distance import cdist
     d = np.abs(cdist(src, src) - cdist(tgt, tgt))
-    differ = hard != ref_hard.astype(bool)
+    differ = hard != ref_hard
     assert (np.abs(d[differ] - 0.05) < 1e-5).all()
     assert differ.sum() <= 1e-4 * K * K
     assert np.abs(soft - ref_soft).max() < 1e-4

@@ -247,21 +247,26 @@ def cpu_model() -> str:
     AVX2 and AVX-512 machines, so every benchmark names it."""
     import platform
     try:
-        info = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
+        lines = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read().splitlines()
     except OSError:
         return platform.machine()
-    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
+    name = next((line.split(":", 1)[1].strip() for line in lines
                  if line.startswith("model name")), platform.machine())
-    flags = next((line.split(":", 1)[1].split() for line in info.splitlines()
-                  if line.startswith("flags")), [])
+    flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
     vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else ""
     return f"{name}, {vector}" if vector else name
 
 
-def machine_line() -> str:
-    """CPU, OS, Python and the load average when the evaluation ran (timings depend on it)."""
+def host_line() -> str:
+    """CPU (model, vector unit, architecture, count), OS and Python of this machine."""
     import os
     import platform
-    load = " ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
     return (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPU, {platform.system()} "
-            f"{platform.release()}, python {platform.python_version()}, load average {load}")
+            f"{platform.release()}, python {platform.python_version()}")
+
+
+def machine_line() -> str:
+    """:func:`host_line` and the load average when the evaluation ran (timings depend on it)."""
+    import os
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    return f"{host_line()}, load average {load}"

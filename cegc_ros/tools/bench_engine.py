@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -305,9 +304,8 @@ def main(argv: list[str] | None = None) -> int:
         if (not sizes and not args.real) or min(sizes, default=64) < 64 or args.pairs < 1 or args.repeats < 1:
             raise BenchError("--sizes must be >= 64 points (empty only with --real), --pairs and --repeats >= 1")
         results = []
-        from cegc_ros.evaluation.report import cpu_model
-        header = (f"{cpu_model()} ({platform.machine()}), {os.cpu_count()} CPU, {platform.system()} {platform.release()}, "
-                  f"python {platform.python_version()}; start: {load_line()}")
+        from cegc_ros.evaluation.report import host_line
+        header = f"{host_line()}; start: {load_line()}"
         print(header, flush=True)
         sets = [(str(size), "", make_pairs(size, args.pairs, Path(args.cache))) for size in sizes]
         sets += [(d.name, d.name, real_pair_files(d, args.pairs, Path(args.cache))) for d in args.real]

@@ -12,7 +12,8 @@ For every pair, both clouds on one 2.5 cm grid (the 3DMatch fragments' own voxel
   curvature at that scale;
 - ``planar``: share of points whose neighbourhood is a plane (smallest eigenvalue under 1% of
   the sum): floor, walls, table tops;
-- ``overlap``: share of source points within 1.5 voxels of a target point after the ground truth;
+- ``overlap``: share of source points within 1.5 voxels of a target point after the ground truth
+  (``refine.fitness``);
 - ``fpfh_inlier``: the classical pipelines' feature quality on this pair: on a 5 cm grid, normals
   (radius 10 cm) and FPFH (radius 25 cm, 100 neighbours, Open3D), each source point's nearest
   target descriptor is a true match when that target point lies within 10 cm of the source point
@@ -35,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from cegc_ros.bounding import extent
+from cegc_ros.refine import fitness
 from cegc_ros.tools.replay import OneLineParser
 
 #: The grid every cloud is measured on (metres): the 3DMatch fragments' voxel.
@@ -65,7 +68,7 @@ def cloud_stats(points: np.ndarray) -> dict[str, float]:
     ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", nb, nb) / nb.shape[1])   # ascending (N, 3)
     ev = np.clip(ev, 0.0, None)
     return {"points": float(len(pts)),
-            "extent_m": float((pts.max(0) - pts.min(0)).max()),
+            "extent_m": extent(pts),
             "spacing_mm": 1e3 * float(np.median(d[:, 1])),
             "noise_mm": 1e3 * float(np.median(np.sqrt(ev[:, 0]))),
             "planar": float(np.mean(ev[:, 0] < PLANAR_SHARE * ev.sum(1)))}
@@ -93,17 +96,6 @@ def _grid(points: np.ndarray, voxel: float) -> np.ndarray:
     return voxel_downsample(np.asarray(points, np.float64), voxel).astype(np.float64)
 
 
-def _moved(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
-
-
-def overlap(source: np.ndarray, target: np.ndarray, T: np.ndarray, distance: float) -> float:
-    """Share of source points within ``distance`` of a target point after T_target_source."""
-    from scipy.spatial import cKDTree
-    d, _ = cKDTree(target).query(_moved(source, T), k=1, distance_upper_bound=distance * (1 + 1e-9))
-    return float(np.mean(d <= distance))
-
-
 def fpfh_inlier_ratio(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> float:
     """Share of the overlapping source points (FPFH_VOXEL grid) whose nearest target FPFH is a
     true match (within MATCH_DISTANCE after T); nan when no source point overlaps."""
@@ -119,7 +111,7 @@ def fpfh_inlier_ratio(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> 
             radius=FPFH_RADIUS, max_nn=FPFH_MAX_NN))
         feats.append(np.asarray(f.data).T.copy())
         clouds.append(p)
-    moved = _moved(clouds[0], T)
+    moved = clouds[0] @ T[:3, :3].T + T[:3, 3]
     near, _ = cKDTree(clouds[1]).query(moved, k=1)
     inside = near <= MATCH_DISTANCE
     if not inside.any():
@@ -133,7 +125,7 @@ def pair_stats(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> dict[st
     src, tgt = _grid(source, GRID), _grid(target, GRID)
     a, b = cloud_stats(src), cloud_stats(tgt)
     out = {k: 0.5 * (a[k] + b[k]) for k in a}
-    out["overlap"] = overlap(src, tgt, T, 1.5 * GRID)
+    out["overlap"] = fitness(src, tgt, T, 1.5 * GRID)               # share of source points on the target
     out["fpfh_inlier"] = fpfh_inlier_ratio(source, target, T)
     return out
 
