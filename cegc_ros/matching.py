@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from .config import EngineConfig
+from .denormals import flush_denormals
 from .geometry import PreparedCloud
 
 CANDIDATE_SOURCES = ("learned", "fpfh", "both", "all")
@@ -78,7 +79,8 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
         raise ValueError(f"engine.candidates must be one of {CANDIDATE_SOURCES}, got {eng.candidates!r}")
     with torch.inference_mode():
         if eng.candidates == "all":
-            out = model(*args)
+            with flush_denormals():     # cegc_ros/denormals.py
+                out = model(*args)
             s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
             t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
             cand = out.match[0].cpu().numpy()[:, None]                          # (n1, 1)
@@ -89,7 +91,8 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
             if eng.candidates in ("fpfh", "both"):
                 extra = torch.from_numpy(fpfh_neighbours(ps.desc, pt.desc, eng.fpfh_candidates)).unsqueeze(0)
             k_learned = eng.learned_candidates if eng.candidates in ("learned", "both") else 0
-            out = model.score_candidates(*args, k_learned=k_learned, extra=extra)
+            with flush_denormals():
+                out = model.score_candidates(*args, k_learned=k_learned, extra=extra)
             s_ov = torch.sigmoid(out.src_overlap_logits[0]).float().cpu().numpy()
             t_ov = torch.sigmoid(out.tgt_overlap_logits[0]).float().cpu().numpy()
             cand = out.candidates[0].cpu().numpy()                             # (N, k)

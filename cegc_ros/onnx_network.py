@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from .denormals import flush_denormals
+
 RUNTIMES = ("auto", "torch", "onnxruntime")
 #: ONNX opset of the export (TorchScript exporter; supported by ONNX Runtime >= 1.14).
 OPSET = 17
@@ -139,7 +141,11 @@ class OnnxNetwork:
         # sleep when the process runs with OMP_WAIT_POLICY=PASSIVE (the engine's default).
         if os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE":
             opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        # Subnormals flushed in the pool threads (cegc_ros/denormals.py); creating the session
+        # sets them on this thread too, which the wrapper undoes.
+        opts.add_session_config_entry("session.set_denormal_as_zero", "1")
+        with flush_denormals(on=False):
+            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         meta = self.session.get_modelmeta().custom_metadata_map
         self.path = Path(path)
         self.cfg = cfg
@@ -178,5 +184,6 @@ class OnnxNetwork:
         feeds = {name: np.ascontiguousarray(t.detach().cpu().numpy()) for name, t in
                  zip(_INPUTS, (src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, extra))}
         feeds["extra"] = feeds["extra"].astype(np.int64, copy=False)
-        outs = self.session.run(list(_OUTPUTS), feeds)
+        with flush_denormals():
+            outs = self.session.run(list(_OUTPUTS), feeds)
         return OnnxCandidates(*(torch.from_numpy(o) for o in outs))

@@ -64,3 +64,63 @@ def test_torch_imported_first_is_told_what_it_costs():
     r = _probe("torch")
     assert len(r["warnings"]) == 1
     assert "OMP_WAIT_POLICY could not take effect" in r["warnings"][0]
+
+
+@pytest.mark.parametrize("runtime", ["onnxruntime", "torch"])
+def test_the_network_runs_with_subnormals_flushed_and_the_callers_thread_keeps_its_own(runtime, monkeypatch):
+    """Subnormals are flushed while the network runs (Intel cores pay a slow path for each one
+    attention's softmax makes) and nowhere else; the caller's thread gets its own setting back,
+    ONNX Runtime's session creation included; the pose is the one computed without the flush."""
+    import numpy as np
+    import torch
+
+    from cegc_ros import denormals, matching
+    from cegc_ros.config import EngineConfig
+    from cegc_ros.engine import Registrar
+
+    if not torch.set_flush_denormal(False):
+        pytest.skip("no FTZ/DAZ control on this CPU (not x86)")
+    assert not denormals.denormals_flushed()
+    assert float(np.float32(1e-40) * np.float32(1.0)) > 0.0      # the probe's premise
+    with denormals.flush_denormals():
+        assert denormals.denormals_flushed()
+        assert float(np.float32(1e-40) * np.float32(1.0)) == 0.0
+        with denormals.flush_denormals(on=False):                  # only restores
+            assert denormals.denormals_flushed()
+        assert denormals.denormals_flushed()
+    assert not denormals.denormals_flushed()
+
+    reg = Registrar.from_checkpoint(device="cpu", engine=EngineConfig(runtime=runtime), warm=False)
+    assert not denormals.denormals_flushed()                      # session creation undone
+    seen = []
+    real_neighbours = matching.fpfh_neighbours
+
+    def outside(*args, **kwargs):                                 # runs just before the network
+        seen.append(("outside", denormals.denormals_flushed()))
+        return real_neighbours(*args, **kwargs)
+
+    monkeypatch.setattr(matching, "fpfh_neighbours", outside)
+    owner, name = (reg._onnx.session, "run") if runtime == "onnxruntime" else (reg.model, "score_candidates")
+    real_network = getattr(owner, name)
+
+    def inside(*args, **kwargs):
+        seen.append(("network", denormals.denormals_flushed()))
+        return real_network(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, inside)
+    rng = np.random.default_rng(3)
+    k = 2000
+    src = np.concatenate([np.c_[rng.uniform(0, 3, (k, 2)), np.zeros(k)],
+                          np.c_[np.zeros(k), rng.uniform(0, 3, k), rng.uniform(0, 2.5, k)],
+                          np.c_[rng.uniform(0, 3, k), np.zeros(k), rng.uniform(0, 2.5, k)]])
+    c, s = np.cos(0.3), np.sin(0.3)
+    tgt = src @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T + [0.2, -0.1, 0.05]
+    flushed = reg.register(src, tgt)
+    assert flushed.runtime == runtime
+    assert seen == [("outside", False), ("network", True)] and not denormals.denormals_flushed()
+    monkeypatch.setattr(torch, "set_flush_denormal", lambda on: False)   # a CPU without the control
+    plain = reg.register(src, tgt)
+    assert seen[2:] == [("outside", False), ("network", False)]
+    np.testing.assert_allclose(flushed.T_target_source, plain.T_target_source, atol=1e-9)
+    angle = np.degrees(np.arccos((np.trace(flushed.T_target_source[:3, :3]) - 1) / 2))
+    assert abs(angle - np.degrees(0.3)) < 0.5
