@@ -92,6 +92,9 @@ def test_the_network_runs_with_subnormals_flushed_and_the_callers_thread_keeps_i
 
     reg = Registrar.from_checkpoint(device="cpu", engine=EngineConfig(runtime=runtime), warm=False)
     assert not denormals.denormals_flushed()                      # session creation undone
+    if runtime == "onnxruntime":                                  # and its pool flushes too
+        opts = reg._onnx.session.get_session_options()
+        assert opts.get_session_config_entry("session.set_denormal_as_zero") == "1"
     seen = []
     real_neighbours = matching.fpfh_neighbours
 
