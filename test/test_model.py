@@ -129,6 +129,38 @@ def test_cams_chunking_does_not_change_scores():
     assert torch.allclose(a.conf_logits, b.conf_logits, atol=1e-5)
 
 
+def test_agnn_layer_attention_on_points_is_the_edge_wise_attention():
+    """The AGNN layer applies the keys' and values' linear maps to the N points instead of the
+    N*K edges (cegc_ros/model/features.py): the same function as the paper's edge-wise form,
+    for the shipped weights and for random ones, gradients included."""
+    from cegc_ros.engine import default_weights, load_checkpoint
+    from cegc_ros.model.features import AGNNLayer
+
+    def edge_wise(layer, edges):
+        fb = layer.embed(edges)
+        centre = fb.max(dim=2).values
+        q = layer.q(centre).unsqueeze(2)
+        a = torch.softmax((q * layer.k(fb)).sum(-1) * layer.scale, dim=-1)
+        return layer.out((a.unsqueeze(-1) * layer.v(fb)).sum(2)) + centre
+
+    torch.manual_seed(0)
+    shipped, _ = load_checkpoint(default_weights(), "cpu")
+    layers = list(shipped.agnn.layers) + [AGNNLayer(10, 24)]
+    for layer in layers:
+        c_in = layer.embed[0].in_features
+        edges = torch.randn(1, 300, 12, c_in, requires_grad=True)
+        ref = edge_wise(layer, edges)
+        out = layer(edges)
+        assert out.shape == ref.shape == (1, 300, layer.k.out_features)
+        assert ref.abs().max() > 1.0                                   # not a trivially small output
+        torch.testing.assert_close(out, ref, atol=2e-5, rtol=1e-5)
+        g_ref, = torch.autograd.grad(ref.square().sum(), edges)
+        g_out, = torch.autograd.grad(out.square().sum(), edges)
+        torch.testing.assert_close(g_out, g_ref, atol=1e-3, rtol=1e-4)
+        wk = torch.autograd.grad(layer(edges).sum(), layer.k.weight)[0]
+        assert wk.abs().sum() > 0                                       # the keys still learn
+
+
 def test_overlap_labels_from_ground_truth():
     src = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [5.0, 5, 5]]])
     R = torch.eye(3)[None]
