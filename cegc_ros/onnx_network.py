@@ -184,6 +184,5 @@ class OnnxNetwork:
         feeds = {name: np.ascontiguousarray(t.detach().cpu().numpy()) for name, t in
                  zip(_INPUTS, (src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, extra))}
         feeds["extra"] = feeds["extra"].astype(np.int64, copy=False)
-        with flush_denormals():
-            outs = self.session.run(list(_OUTPUTS), feeds)
+        outs = self.session.run(list(_OUTPUTS), feeds)   # the caller flushes (matching.match)
         return OnnxCandidates(*(torch.from_numpy(o) for o in outs))
