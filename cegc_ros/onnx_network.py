@@ -36,7 +36,7 @@ OPSET = 17
 #: Export sizes (the graph is traced at these; the point axes stay dynamic).
 EXPORT_POINTS = 256
 _INPUTS = ("src", "tgt", "src_normals", "tgt_normals", "src_desc", "tgt_desc", "extra")
-_OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores")
+OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores")
 
 
 class OnnxExportError(RuntimeError):
@@ -98,7 +98,7 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
     try:
         with torch.inference_mode(False), torch.no_grad():
             torch.onnx.export(wrapper, (s, t, sn, tn, sd, td, extra), str(tmp), opset_version=OPSET,
-                              dynamo=False, input_names=list(_INPUTS), output_names=list(_OUTPUTS),
+                              dynamo=False, input_names=list(_INPUTS), output_names=list(OUTPUTS),
                               dynamic_axes=dynamic)
         proto = onnx.load(str(tmp))
         for key, value in {"cegc_checkpoint_sha256": sha256_of(checkpoint),
@@ -115,6 +115,16 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
         raise OnnxExportError(f"ONNX export of {checkpoint} failed: {type(err).__name__}: {err}"
                               .splitlines()[0]) from err
     return out
+
+
+def feeds_of(src: Any, tgt: Any, src_normals: Any, tgt_normals: Any, src_desc: Any, tgt_desc: Any,
+             extra: Any) -> dict[str, np.ndarray]:
+    """score_candidates' tensors (CPU, (1, N, .)) -> the export's inputs by name (numpy,
+    contiguous; ``extra`` int64)."""
+    feeds = {name: np.ascontiguousarray(t.detach().cpu().numpy()) for name, t in
+             zip(_INPUTS, (src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, extra))}
+    feeds["extra"] = feeds["extra"].astype(np.int64, copy=False)
+    return feeds
 
 
 @dataclass
@@ -181,8 +191,6 @@ class OnnxNetwork:
             raise ValueError(f"the ONNX export scores {self.learned_candidates} learned + extra "
                              f"candidates, asked for {k_learned} learned and "
                              f"{'no' if extra is None else 'some'} extra")
-        feeds = {name: np.ascontiguousarray(t.detach().cpu().numpy()) for name, t in
-                 zip(_INPUTS, (src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, extra))}
-        feeds["extra"] = feeds["extra"].astype(np.int64, copy=False)
-        outs = self.session.run(list(_OUTPUTS), feeds)   # the caller flushes (matching.match)
+        feeds = feeds_of(src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, extra=extra)
+        outs = self.session.run(list(OUTPUTS), feeds)   # the caller flushes (matching.match)
         return OnnxCandidates(*(torch.from_numpy(o) for o in outs))
