@@ -51,6 +51,13 @@ class PreprocessConfig:
     num_points: int = field(default=512, metadata=_meta(
         "Points per cloud fed to the network (seeded subsample of the support points). The "
         "network's time grows as about the square of this.", 64, 8192))
+    points_per_network_point: int = field(default=0, metadata=_meta(
+        "Speed for small clouds: at most one network point per this many points of the "
+        "smaller bounded cloud (at least 64, at most num_points; the support points scale "
+        "alike); clouds of this x num_points points and more are not affected. 4: a "
+        "1536-point crop runs 384 network points at about two thirds of the time, at the cost "
+        "of some accuracy on noisy and low-overlap small clouds (docs/pipeline.md, measured); "
+        "0 (default) always uses num_points.", 0, 1024))
     sampling: str = field(default="grid", metadata=_meta(
         "How the support and network points are drawn: 'grid' (spatially even: one point per "
         "cell of the coarsest grid with enough occupied cells) or 'random' (uniform draw, which "

@@ -44,7 +44,7 @@ _THREAD_ENV_TOO_LATE = apply_thread_environment()
 
 from . import bounding, estimator, matching, refine  # noqa: E402
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
-from .geometry import LEGACY_FEATURES, prepare_pair  # noqa: E402
+from .geometry import LEGACY_FEATURES, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
@@ -242,7 +242,9 @@ class Registrar:
         rng = np.random.default_rng(0)
         n = self._compile_points
         with self._lock:
-            clouds = [rng.uniform(-1, 1, (4 * n, 3)) * [1.0, 1.0, 0.3] for _ in range(2)]
+            # enough points that the voxel grid and the small-cloud budget leave n network points
+            m = 2 * max(4, self.preprocess.points_per_network_point) * n
+            clouds = [rng.uniform(-1, 1, (m, 3)) * [1.0, 1.0, 0.3] for _ in range(2)]
             try:
                 self._register(clouds[0], clouds[1], self.preprocess, self.engine)
             except Exception as err:   # e.g. no C++ compiler for inductor: stay usable
@@ -283,7 +285,9 @@ class Registrar:
             bounded = bounding.bound_pair(source_xyz, target_xyz, pre, self.MIN_POINTS)
             src, tgt = bounded.source, bounded.target
         with clock("features"):
-            ps, pt, norm = prepare_pair(src, tgt, pre.num_points, pre.support_points,
+            n_net, n_support = point_budget(min(len(src), len(tgt)), pre.num_points, pre.support_points,
+                                            pre.points_per_network_point)
+            ps, pt, norm = prepare_pair(src, tgt, n_net, n_support,
                                         np.random.default_rng(pre.seed), self.model.cfg.features(),
                                         pre.sampling)
             src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres

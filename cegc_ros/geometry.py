@@ -241,6 +241,23 @@ def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generato
     return PreparedCloud(pts[sel], normals[sel], desc[sel], sup[sel])
 
 
+#: The fewest network points a small cloud is given (the ONNX export's point axes need >= 64).
+MIN_NETWORK_POINTS = 64
+
+
+def point_budget(n_points: int, num_points: int, support_points: int, points_per_network_point: int
+                 ) -> tuple[int, int]:
+    """(network points, support points) for a pair whose smaller bounded cloud has ``n_points``:
+    ``num_points`` and ``support_points`` (``preprocess``), or, for a cloud of fewer than
+    ``points_per_network_point`` x ``num_points`` points, one network point per
+    ``points_per_network_point`` points (at least MIN_NETWORK_POINTS, never more than asked) and
+    the support scaled by the same factor. ``points_per_network_point`` 0: always as asked."""
+    if points_per_network_point <= 0 or n_points >= points_per_network_point * num_points:
+        return num_points, support_points
+    net = min(num_points, max(MIN_NETWORK_POINTS, n_points // points_per_network_point))
+    return net, max(net, round(support_points * net / num_points))
+
+
 def prepare_pair(source: np.ndarray, target: np.ndarray, num_points: int, support_points: int,
                  rng: np.random.Generator, features: dict[str, Any], sampling: str = "grid"
                  ) -> tuple[PreparedCloud, PreparedCloud, Normalisation]:

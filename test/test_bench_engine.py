@@ -104,3 +104,15 @@ def test_real_folders_become_labelled_benchmark_pairs(tmp_path, capsys):
     assert B.ratios([row, peer]) == "500 points, lidar (jemalloc): cegc / ransac 2.00x"
     assert B.main(["--real", str(tmp_path / "nothing"), "--sizes", "1500", "--cache", str(tmp_path / "c")]) == 1
     assert "--real" in capsys.readouterr().err
+
+
+def test_the_cegc_worker_runs_the_parameter_file_it_is_given(tmp_path):
+    from cegc_ros.evaluation.methods import default_params_file
+    files = [str(f) for f in B.make_pairs(1500, 1, tmp_path)]
+    text = default_params_file().read_text()
+    assert 'engine.refine: "icp"' in text
+    no_icp = tmp_path / "no_icp.yaml"
+    no_icp.write_text(text.replace('engine.refine: "icp"', 'engine.refine: "none"'))
+    default, other = B.worker("cegc", files, 1), B.worker("cegc", files, 1, str(no_icp))
+    assert "refine" in default["stages"] and "refine" not in other["stages"]
+    assert default["median_rotation_error_deg"] < 1.0 and other["median_rotation_error_deg"] < 5.0

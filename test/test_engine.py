@@ -367,6 +367,30 @@ def test_ablation_switches_select_the_path(tiny_checkpoint):
     assert len(reg.register(src, tgt).correspondences) == 50
 
 
+def test_small_clouds_get_fewer_network_points_and_large_ones_as_many_as_asked(tiny_checkpoint):
+    """Below points_per_network_point x num_points points in the smaller cloud, one network
+    point per points_per_network_point points (at least 64), the support scaled alike; 0 off."""
+    from cegc_ros.geometry import point_budget
+    assert point_budget(1536, 512, 1024, 4) == (384, 768)
+    assert point_budget(2048, 512, 1024, 4) == point_budget(20000, 512, 1024, 4) == (512, 1024)
+    assert point_budget(100, 512, 1024, 4) == (64, 128)
+    assert point_budget(1536, 512, 1024, 0) == point_budget(1536, 512, 1024, 3) == (512, 1024)
+    assert PreprocessConfig().points_per_network_point == 0          # off by default
+    pre = PreprocessConfig(voxel_ratio=0.0, points_per_network_point=4)   # no grid: the clouds stay
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre, warm=False)
+    small, large = scene(1536, seed=2), scene(3000, seed=3)
+    from cegc_ros.bounding import bound_pair
+    bounded = bound_pair(small, large, pre, 16)            # less a few isolated points
+    n = point_budget(min(len(bounded.source), len(bounded.target)), 512, 1024, 4)[0]
+    assert 370 <= n <= 384
+    res = reg.register(small, large)                        # the smaller cloud sets the budget
+    assert res.source_points.shape == (n, 3) and res.target_points.shape == (n, 3)
+    assert res.correspondences[:, 0].max() < n and res.source_overlap.shape == (n,)
+    assert reg.register(large, scene(2400, seed=4)).source_points.shape == (512, 3)
+    reg.update(preprocess=PreprocessConfig(voxel_ratio=0.0))
+    assert reg.register(small, large).source_points.shape == (512, 3)
+
+
 def test_work_is_bounded_whatever_the_input_size(tiny_checkpoint):
     """A 400k-point cloud is gridded and capped: later stages see at most max_points, and the
     adaptive voxel (voxel_ratio x extent) is reported."""

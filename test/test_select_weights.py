@@ -69,3 +69,25 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
     # correct means within 15 deg and 0.3 m, and the dumped errors say so
     assert all((r["correct"] == "True") == (float(r["rotation_error_deg"]) < 15.0
                                             and float(r["translation_error_m"]) < 0.3) for r in rows)
+
+
+def test_points_thins_every_cloud_to_a_seeded_subset(cache, tmp_path, capsys):
+    import numpy as np
+
+    from cegc_ros.data.corruption import thinned
+    from cegc_ros.engine import default_weights
+    pairs = [PC.PairCache(cache, kinds=("views",), sensors=("kinect",))[i] for i in range(2)]
+    a, b = thinned(pairs, 700, [0, 1]), thinned(pairs, 700, [0, 1])
+    for p, q, r in zip(pairs, a, b):
+        assert len(q.source) == len(q.target) == 700 and np.array_equal(q.source, r.source)   # seeded
+        assert np.isin(q.source.view([("", q.source.dtype)] * 3), p.source.view([("", p.source.dtype)] * 3)).all()
+        assert (q.T_target_source == p.T_target_source).all()
+    assert not np.array_equal(a[0].source, thinned(pairs, 700, [5, 6])[0].source)   # keyed by the pair
+    assert len(thinned(pairs, 10**6, [0, 1])[0].source) == len(pairs[0].source)     # never grown
+    out = tmp_path / "rows.csv"
+    assert select_weights.main([str(cache), str(default_weights()), "--points", "700", "--dump", str(out)]) == 0
+    assert "on 2 pairs" in capsys.readouterr().out
+    import csv
+    assert len(list(csv.DictReader(open(out)))) == 2
+    with pytest.raises(ValueError, match="points must be >= 1"):
+        thinned(pairs, 0, [0, 1])

@@ -7,6 +7,8 @@ their rays from the sensor (the cloud frame's origin) out to a uniformly drawn r
 ``[max(its range, near), far]``: a Kinect v2 room cloud looked like this with 2% of its points
 out to 12 m (issue: real sensors). Used by ``cegc-eval --flying-pixels`` and
 ``select_weights --flying-pixels``.
+
+``thinned``: the same pairs as a sparser sensor would see them (``select_weights --points``).
 """
 
 from __future__ import annotations
@@ -49,4 +51,21 @@ def with_flying_pixels(pairs: Sequence[Any], share: float, keys: Iterable[int]) 
     [key, 1]), so that a pair gets the same defects whichever set it is drawn into."""
     return [dataclasses.replace(p, source=add_flying_pixels(p.source, share, np.random.default_rng([int(k), 0])),
                                 target=add_flying_pixels(p.target, share, np.random.default_rng([int(k), 1])))
+            for k, p in zip(keys, pairs)]
+
+
+def thinned(pairs: Sequence[Any], points: int, keys: Iterable[int]) -> list[Any]:
+    """Copies of ``pairs`` with each cloud thinned to at most ``points`` points (a uniform draw
+    seeded by its pair's key: source [key, 2], target [key, 3]), as a sparser sensor would see
+    the same surfaces. The ground truth is unchanged."""
+    if points < 1:
+        raise ValueError(f"points must be >= 1, got {points}")
+
+    def thin(cloud: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        cloud = np.asarray(cloud)
+        if len(cloud) <= points:
+            return cloud
+        return cloud[np.sort(rng.choice(len(cloud), points, replace=False))]
+    return [dataclasses.replace(p, source=thin(p.source, np.random.default_rng([int(k), 2])),
+                                target=thin(p.target, np.random.default_rng([int(k), 3])))
             for k, p in zip(keys, pairs)]

@@ -3,7 +3,7 @@ peak memory, with and without jemalloc, and RANSAC and SC2-PCR on the same pairs
 
     python -m cegc_ros.tools.bench_engine [--sizes 1500,20000,300000,5000000] [--pairs 3]
         [--repeats 2] [--methods cegc,ransac,sc2pcr] [--allocators jemalloc,system]
-        [--threads 0] [--real DIR ...] [--cache .cache/bench] [--json runs/bench_engine.json]
+        [--threads 0] [--real DIR ...] [--cache .cache/bench] [--params FILE] [--json runs/bench_engine.json]
 
 Pairs (generated once into ``--cache``, float32 .npy, metres): at 1.5k points the synthetic
 7Scenes-protocol test pairs (1536-point crops, normalised units, what the paper's 7Scenes
@@ -25,6 +25,8 @@ loaded machine the wall time grows with the load, the CPU time much less). ``jem
 (cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the machine's
 load; ``--json`` keeps every number. ``--threads N`` sets OMP_NUM_THREADS=N in the workers
 (torch and Open3D; 0 keeps the libraries' defaults, as the node does with ``engine.threads: 0``).
+``--params FILE`` runs the engine with another register_node parameter file (a setting's cost
+beside the same peers); its path goes in the printed command.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def _stats(values: list[float]) -> dict[str, float]:
     return {"median_ms": float(np.median(a)), "p90_ms": float(np.percentile(a, 90))}
 
 
-def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
+def worker(method: str, files: list[str], repeats: int, params: str = "") -> dict[str, Any]:
     """Time ``method`` on the pairs in ``files`` (this process only); peak RSS included."""
     import resource
 
@@ -134,7 +136,7 @@ def worker(method: str, files: list[str], repeats: int) -> dict[str, Any]:
     if method == "cegc":
         from cegc_ros.engine import Registrar
         from cegc_ros.evaluation.methods import engine_configs
-        pre, eng = engine_configs()                        # the node's shipped parameter file
+        pre, eng = engine_configs(params or None)          # default: the node's shipped parameter file
         t_load = time.perf_counter()
         registrar = Registrar.from_checkpoint(device="cpu", preprocess=pre, engine=eng)
         startup = time.perf_counter() - t_load              # weights, runtime session, warm_start
@@ -213,10 +215,11 @@ def load_line() -> str:
     return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def run_one(method: str, files: list[Path], repeats: int, allocator: str, threads: int = 0) -> dict[str, Any]:
+def run_one(method: str, files: list[Path], repeats: int, allocator: str, threads: int = 0,
+            params: str = "") -> dict[str, Any]:
     """One worker subprocess; its JSON result plus the load around it."""
     cmd = [sys.executable, "-m", "cegc_ros.tools.bench_engine", "--worker", method,
-           "--repeats", str(repeats), *[str(f) for f in files]]
+           "--repeats", str(repeats), *(["--params", params] if params else []), *[str(f) for f in files]]
     before = load_line()
     proc = subprocess.run(cmd, env=_environment(allocator, threads), capture_output=True, text=True,
                           check=False)
@@ -290,12 +293,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="also time the pairs of this real folder (cegc-eval --real-dir layout: the "
                          "bunny scans, the LiDAR pair); repeatable")
     ap.add_argument("--cache", default=".cache/bench", help="where the generated pairs are kept")
+    ap.add_argument("--params", default="", metavar="FILE",
+                    help="register_node parameter file of the cegc runs (default params/register_node.yaml)")
     ap.add_argument("--json", default=None, help="write every number to this file")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("files", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker, args.files, args.repeats)))
+        print(json.dumps(worker(args.worker, args.files, args.repeats, args.params)))
         return 0
     try:
         sizes = _csv(args.sizes, int)
@@ -312,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
         for label, name, files in sets:
             for allocator in allocators:
                 for method in methods:
-                    r = run_one(method, files, args.repeats, allocator, args.threads)
+                    r = run_one(method, files, args.repeats, allocator, args.threads, args.params)
                     if name:
                         r["set"] = name
                     print(f"{label} {allocator} {method}: total median {r['stages']['total']['median_ms']:.0f} ms, "

@@ -9,6 +9,7 @@ trained on, never real data). Prints one line per checkpoint: recall at 15 deg /
 pairs under and over 30% overlap, median seconds per pair. This is how the shipped weights are
 chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preprocess setting
 (``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings;
+``--points N`` thins every cloud to N points first (a sparser sensor);
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 """
 
@@ -73,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flying-pixels", type=float, default=0.0, metavar="SHARE",
                     help="move this share of each cloud's points out along their rays to 3-12 m "
                          "(cegc_ros/data/corruption.py; seeded per pair)")
+    ap.add_argument("--points", type=int, default=0, metavar="N",
+                    help="thin each cloud to at most N points first (cegc_ros/data/corruption.py; "
+                         "seeded per pair): a sparser sensor's view of the same pairs")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, stage seconds)")
     args = ap.parse_args(argv)
@@ -85,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{args.cache}: no Kinect different-view pairs")
         idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
         pairs = [cache[int(i)] for i in idx]
+        if args.points > 0:
+            from cegc_ros.data.corruption import thinned
+            pairs = thinned(pairs, args.points, idx)                     # seeded by cache index
         if args.flying_pixels > 0:
             from cegc_ros.data.corruption import with_flying_pixels
             pairs = with_flying_pixels(pairs, args.flying_pixels, idx)   # seeded by cache index
