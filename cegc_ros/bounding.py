@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PreprocessConfig
-from .geometry import BINCOUNT_CELLS, checked_cloud, column_max, column_min, voxel_downsample
+from .geometry import checked_cloud, column_max, column_min, use_table, voxel_downsample
 
 
 @dataclass
@@ -144,7 +144,7 @@ def _crowded_cells(points: np.ndarray, cell: float, at_least: int, shift: float 
     if cells >= 2.0 ** 62:                                  # ids would overflow
         return np.zeros(len(points), bool)
     ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-    if cells <= BINCOUNT_CELLS:                             # a table of every cell, no sorting
+    if use_table(cells, len(ids)):                          # a table of every cell, no sorting
         return np.bincount(ids, minlength=int(cells))[ids] >= at_least
     _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
     return counts[inverse] >= at_least

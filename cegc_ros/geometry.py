@@ -147,8 +147,18 @@ def subsample(points: np.ndarray, n: int, rng: np.random.Generator, sampling: st
 
 
 #: Grids of at most this many cells count their occupied cells with a table (np.bincount)
-#: instead of np.unique's hashing: the same count in about a third of the time.
+#: instead of np.unique's sort: the same count in about a third of the time ...
 BINCOUNT_CELLS = 1 << 22
+#: ... when the table is not much larger than the points: zeroing and scanning it costs ~1 ns a
+#: cell, so a sparse cloud in a big box (a LiDAR sweep: up to 660 cells a point) counts faster
+#: by np.unique (20k points: table 0.2 ms at 16 cells a point, 6 ms at 4M cells; unique 0.6 ms;
+#: docs/performance.md).
+TABLE_CELLS_PER_POINT = 16
+
+
+def use_table(cells: float, n_points: int) -> bool:
+    """Whether a grid of ``cells`` cells over ``n_points`` points counts them by a table."""
+    return cells <= BINCOUNT_CELLS and cells <= TABLE_CELLS_PER_POINT * max(n_points, 1)
 
 
 def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray | None:
@@ -173,7 +183,7 @@ def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray 
         else:                                          # a grid this fine (far-apart clusters): int64
             k, d = key.astype(np.int64), dims.astype(np.int64)
             ids = (k[:, 0] * d[1] + k[:, 1]) * d[2] + k[:, 2]
-        if cells <= BINCOUNT_CELLS:                    # a table of every cell: no hashing
+        if use_table(cells, len(ids)):                 # a table of every cell: no sorting
             count = int(np.count_nonzero(np.bincount(ids.astype(np.intp), minlength=int(cells))))
         else:
             count = len(np.unique(ids))

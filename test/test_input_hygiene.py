@@ -160,3 +160,29 @@ def test_a_pair_gets_the_same_flying_pixels_whichever_set_it_is_drawn_into():
     moved = np.abs(a[0].source - pairs[0].source).max(1) > 0
     assert moved.sum() == 50 and not np.array_equal(a[0].source, a[0].target)
     assert np.array_equal(pairs[0].source, _room(1000, 0))         # the originals are untouched
+
+
+@pytest.mark.parametrize("case", ["dense", "sparse_box"])
+def test_crowded_cells_count_the_same_by_table_or_by_sort(case):
+    """A dense cloud counts its cubes with a table, a sparse one in a big box (a LiDAR sweep:
+    hundreds of cells a point) by np.unique; both are the plain count per cube."""
+    from cegc_ros.bounding import _crowded_cells
+    from cegc_ros.geometry import TABLE_CELLS_PER_POINT, use_table
+    rng = np.random.default_rng(7)
+    pts = {"dense": rng.uniform(0, 1, (2000, 3)) * [2.0, 2.0, 0.05],
+           "sparse_box": np.r_[np.repeat(rng.uniform(0, 80, (300, 3)) * [1, 1, 0.04], 5, axis=0)
+                               + rng.normal(0, 0.02, (1500, 3)),        # returns in clumps
+                               rng.uniform(0, 80, (1500, 3)) * [1, 1, 0.04]]}[case]
+    cell = {"dense": 0.05, "sparse_box": 0.5}[case]
+    lo = pts.min(0)
+    key = np.floor((pts - lo) / cell).astype(np.int64)
+    dims = key.max(0) + 1
+    cells = float(np.prod(dims.astype(float)))
+    assert use_table(cells, len(pts)) == (case == "dense")
+    assert (cells <= TABLE_CELLS_PER_POINT * len(pts)) == (case == "dense")
+    ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+    for at_least in (2, 3):
+        want = counts[inverse] >= at_least
+        got = _crowded_cells(pts, cell, at_least)
+        assert np.array_equal(got, want) and 0 < want.sum() < len(pts)
