@@ -83,6 +83,8 @@ class RegistrationResult:
     voxel_size: float = 0.0              # metres of the grid that bounded the input (0: none)
     dropped: tuple[Any, Any] = ()        # bounding.Dropped of source and target: input hygiene
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
+    #: (H, 4, 4) the poses the estimator's verification ranked (estimator.Estimate.hypotheses)
+    hypotheses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
@@ -326,7 +328,7 @@ class Registrar:
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
             reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, dropped=bounded.dropped,
-            timings=timings)
+            timings=timings, hypotheses=est.hypotheses)
 
 
 class _StageClock:

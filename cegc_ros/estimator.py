@@ -45,7 +45,7 @@ of two bit-packed rows (K / 64 words) per compatible (seed, j) pair, at most O(S
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -81,6 +81,10 @@ class Estimate:
     inliers: np.ndarray
     valid: bool
     reason: str = ""
+    #: (H, 4, 4) T_target_source of the hypotheses the verification ranked (``verify`` > 0,
+    #: best-counted first; before the final refinement): which poses were on the table, for
+    #: telling a verification failure from a candidate failure (select_weights --dump).
+    hypotheses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 def kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -303,6 +307,10 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         _, first = np.unique(key, axis=0, return_index=True)
         top = first[np.argsort(-total[first])][:cfg.verify]
         best = int(top[(total[top] * fitnesses(R[top], t[top], clouds[0], clouds[1], thr)).argmax()])
+        hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
+        hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
+    else:
+        hypotheses = np.zeros((0, 4, 4))
     Rb, tb, rb = R[best], t[best], res[best]
 
     # 6. refinement on the inliers with robust weights.
@@ -320,8 +328,9 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         Rb, tb, rb = Rn, tn, rn
     inliers = rb < thr
     if inliers.sum() < 3:
-        return Estimate(Rb, tb, inliers, False, "fewer than 3 correspondences agree with any hypothesis")
-    return Estimate(Rb, tb, inliers, True)
+        return Estimate(Rb, tb, inliers, False, "fewer than 3 correspondences agree with any hypothesis",
+                        hypotheses)
+    return Estimate(Rb, tb, inliers, True, hypotheses=hypotheses)
 
 
 def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,

@@ -106,6 +106,14 @@ def test_geometric_verification_prefers_the_pose_that_lays_the_cloud_on_the_targ
     assert verified.inliers[:40].all() and not verified.inliers[40:80].any()
     off = estimate_compatibility(src, tgt, w, 0.05, clouds=(cloud, target))
     np.testing.assert_array_equal(off.R, alone.R)                 # verify = 0 (the default) switches it off
+    # The ranked hypotheses are kept, best-counted first: the wrong pose heads them, the truth is
+    # among them; without verification there are none.
+    H = verified.hypotheses
+    assert H.ndim == 3 and 2 <= len(H) <= 50 and H.shape[1:] == (4, 4)
+    np.testing.assert_allclose(H[:, 3], np.tile([0, 0, 0, 1.0], (len(H), 1)))
+    assert rotation_error_deg(R2, H[0, :3, :3]) < 1.0
+    assert any(rotation_error_deg(R, h[:3, :3]) < 0.5 and np.linalg.norm(h[:3, 3] - t) < 0.02 for h in H)
+    assert off.hypotheses.shape == (0, 4, 4) and alone.hypotheses.shape == (0, 4, 4)
 
 
 def _reference_matrices(src, tgt, d_thr):

@@ -53,6 +53,19 @@ def test_evaluate_counts_successes_by_overlap():
     r = select_weights.evaluate(Exact().register, pairs)
     assert r["recall"] == pytest.approx(2 / 3) and r["recall_low"] == 1.0 and r["recall_high"] == 0.5
     assert r["n_low"] == 1 and r["median_s"] == 0.5
+    assert r["verification_misses"] == -1                               # no hypotheses reported
+
+    class Ranked:
+        """Always the identity, with the verified poses [identity, shifted by 1 m in x]."""
+        def register(self, s, t):
+            return SimpleNamespace(valid=True, T_target_source=np.eye(4), timings={"total": 0.5},
+                                   hypotheses=np.stack([np.eye(4), T_off]))
+    rows: list = []
+    r = select_weights.evaluate(Ranked().register, pairs, rows)
+    # pair 2 (truth T_off) is wrong, but T_off was among the verified: one verification miss
+    assert r["verification_misses"] == 1
+    assert [row["first_right_hypothesis"] for row in rows] == [0, 1, 0]
+    assert [row["hypotheses"] for row in rows] == [2, 2, 2]
 
 
 def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):

@@ -26,9 +26,10 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
     and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
-    valid, rotation and translation errors, fitness, each stage's seconds) for ``--dump``."""
+    valid, rotation and translation errors, fitness, each stage's seconds, and the rank of the
+    first right pose among those the estimator's verification ranked, -1 for none) for ``--dump``."""
     from cegc_ros.metrics import rotation_error_deg
-    ok, low, secs = [], [], []
+    ok, low, secs, missed = [], [], [], []
     for p in pairs:
         res = register(p.source, p.target)
         T, E = p.T_target_source, res.T_target_source
@@ -38,8 +39,16 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
         ok.append(res.valid and correct)
         low.append(p.info["overlap"] < 0.3)
         secs.append(res.timings["total"])
+        # which of the poses the estimator's verification ranked were right: a wrong result with
+        # one there is the verification's miss, without one the candidates'
+        hyp = getattr(res, "hypotheses", np.zeros((0, 4, 4)))
+        right = [i for i, H in enumerate(hyp)
+                 if rotation_error_deg(T[:3, :3], H[:3, :3]) < 15.0 and np.linalg.norm(T[:3, 3] - H[:3, 3]) < 0.3]
+        if len(hyp):
+            missed.append(bool(right) and not (res.valid and correct))
         if rows is not None:
             rows.append({"overlap": float(p.info["overlap"]), "correct": correct,
+                         "hypotheses": len(hyp), "first_right_hypothesis": right[0] if right else -1,
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
@@ -48,7 +57,8 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
     def share(mask: np.ndarray) -> float:
         return float(ok[mask].mean()) if mask.any() else float("nan")
     return {"recall": float(ok.mean()), "recall_low": share(low), "recall_high": share(~low),
-            "n_low": int(low.sum()), "median_s": float(np.median(secs))}
+            "n_low": int(low.sum()), "median_s": float(np.median(secs)),
+            "verification_misses": int(sum(missed)) if missed else -1}
 
 
 def _overrides(items: list[str]):
@@ -110,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
             for row in rows[start:]:
                 row["run"] = name
             print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
-                  f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s", flush=True)
+                  f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s"
+                  + (f"; wrong with a right pose among the verified: {r['verification_misses']}"
+                     if r["verification_misses"] >= 0 else ""), flush=True)
         if args.dump is not None:
             _write_csv(args.dump, rows)
     except (OSError, ValueError, PairCacheError, CheckpointError) as err:
