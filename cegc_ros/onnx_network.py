@@ -138,24 +138,37 @@ class OnnxCandidates:
     scores: Any               # (1, N, k)
 
 
+def session_options(threads: int = 0) -> Any:
+    """The engine's ONNX Runtime session options: ``threads`` intra-op threads (0: one per
+    physical core), one inter-op thread, no spinning under OMP_WAIT_POLICY=PASSIVE, subnormals
+    flushed in the pool."""
+    import onnxruntime as ort
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(threads)
+    opts.inter_op_num_threads = 1
+    # Pool threads that spin between kernels cost a busy robot's CPU as OpenMP's do: they
+    # sleep when the process runs with OMP_WAIT_POLICY=PASSIVE (the engine's default).
+    if os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE":
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # Subnormals flushed in the pool threads (cegc_ros/denormals.py).
+    opts.add_session_config_entry("session.set_denormal_as_zero", "1")
+    return opts
+
+
+def open_session(path: str | Path, opts: Any) -> Any:
+    """An ONNX Runtime CPU session; creating one with ``set_denormal_as_zero`` also flushes the
+    creating thread, which is given its own state back."""
+    import onnxruntime as ort
+    with flush_denormals(on=False):
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
 class OnnxNetwork:
     """An ONNX Runtime session over the export of one checkpoint; ``cfg`` is the network's
     ModelConfig (the engine reads its feature settings)."""
 
     def __init__(self, path: str | Path, cfg: Any, threads: int = 0) -> None:
-        import onnxruntime as ort
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads)        # 0: one per physical core
-        opts.inter_op_num_threads = 1
-        # Pool threads that spin between kernels cost a busy robot's CPU as OpenMP's do: they
-        # sleep when the process runs with OMP_WAIT_POLICY=PASSIVE (the engine's default).
-        if os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE":
-            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        # Subnormals flushed in the pool threads (cegc_ros/denormals.py); creating the session
-        # sets them on this thread too, which the wrapper undoes.
-        opts.add_session_config_entry("session.set_denormal_as_zero", "1")
-        with flush_denormals(on=False):
-            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.session = open_session(path, session_options(threads))
         meta = self.session.get_modelmeta().custom_metadata_map
         self.path = Path(path)
         self.cfg = cfg

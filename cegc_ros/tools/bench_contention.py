@@ -31,12 +31,14 @@ hogs, with the machine's load average. Errors: one line, exit code 1 (2 for usag
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,9 +112,17 @@ def child(pairs: int, size: int, o3d_threads: int, setting: str = "default") -> 
     return 0
 
 
-def _hog() -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-c", "while True: pass"],
-                            stdin=subprocess.DEVNULL)
+@contextlib.contextmanager
+def busy_processes(n: int) -> Iterator[None]:
+    """``n`` CPU-bound processes (``while True: pass``) for the block, killed after it."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL)
+             for _ in range(n)]
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
 
 
 def measure(setting: str, hogs: int, pairs: int, size: int) -> dict[str, Any]:
@@ -120,17 +130,12 @@ def measure(setting: str, hogs: int, pairs: int, size: int) -> dict[str, Any]:
     env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}
     env.update(env_add)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
-    procs = [_hog() for _ in range(hogs)]
-    try:
+    with busy_processes(hogs):
         load0 = os.getloadavg()[0]
         out = subprocess.run([sys.executable, "-m", "cegc_ros.tools.bench_contention", "--child",
                               str(pairs), str(size), str(o3d_threads), setting], env=env,
                              cwd=str(REPO),
                              capture_output=True, text=True, check=False, timeout=3600)
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
     if out.returncode != 0:
         tail = (out.stderr.strip().splitlines() or ["no output"])[-1]
         raise BenchError(f"{setting} with {hogs} hogs failed (exit {out.returncode}): {tail}")

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -38,6 +39,8 @@ from typing import Any
 import numpy as np
 
 RUNTIMES = ("onnxruntime", "onnxruntime-parallel", "openvino", "openvino-static")
+#: The outputs held against the engine's session: both overlap logits and the candidates.
+CHECKED = ("src_overlap_logits", "tgt_overlap_logits", "candidates")
 
 
 class BenchError(RuntimeError):
@@ -83,14 +86,13 @@ def runner(name: str, net: Any) -> Any:
         return lambda f: net.session.run(list(OUTPUTS), f)
     if name == "onnxruntime-parallel":
         import onnxruntime as ort
-        opts = ort.SessionOptions()
+
+        from cegc_ros.onnx_network import open_session, session_options
+        opts = session_options(threads=1)               # the engine's, but for the executor:
         opts.execution_mode = ort.ExecutionMode.ORT_PARALLEL
-        opts.inter_op_num_threads, opts.intra_op_num_threads = 2, 1
-        for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning"):
-            opts.add_session_config_entry(key, "0")
-        opts.add_session_config_entry("session.set_denormal_as_zero", "1")
-        with flush_denormals(on=False):
-            session = ort.InferenceSession(str(net.path), opts, providers=["CPUExecutionProvider"])
+        opts.inter_op_num_threads = 2
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        session = open_session(net.path, opts)
         return lambda f: session.run(list(OUTPUTS), f)
     if name in ("openvino", "openvino-static"):
         try:
@@ -118,10 +120,6 @@ def runner(name: str, net: Any) -> Any:
     raise BenchError(f"--runtimes: unknown runtime {name!r}, expected some of {', '.join(RUNTIMES)}")
 
 
-def _hog() -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
-
-
 def worker(name: str, feeds_file: Path, repeats: int) -> dict[str, Any]:
     """Time runtime ``name`` on the saved feeds (this process only): median / min ms of a call
     and its outputs against the engine's session's."""
@@ -133,8 +131,7 @@ def worker(name: str, feeds_file: Path, repeats: int) -> dict[str, Any]:
     with np.load(feeds_file) as z:
         count = int(z["pairs"])
         feeds = [{k[len(f"{i}/"):]: z[k] for k in z.files if k.startswith(f"{i}/")} for i in range(count)]
-    ref = [[f.pop(f"ref_{o}") for o in ("src_overlap_logits", "tgt_overlap_logits", "candidates")]
-           for f in feeds]
+    ref = [[f.pop(f"ref_{o}") for o in CHECKED] for f in feeds]
     run = runner(name, net)
     outs = [run(f) for f in feeds]                     # also the first calls (compiles), untimed
     times = []
@@ -157,7 +154,7 @@ def save_feeds(net: Any, feeds: list[dict[str, np.ndarray]], path: Path) -> Path
     for i, f in enumerate(feeds):
         out = dict(zip(OUTPUTS, net.session.run(list(OUTPUTS), f)))
         arrays.update({f"{i}/{k}": v for k, v in f.items()})
-        arrays.update({f"{i}/ref_{k}": out[k] for k in ("src_overlap_logits", "tgt_overlap_logits", "candidates")})
+        arrays.update({f"{i}/ref_{k}": out[k] for k in CHECKED})
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return path
@@ -165,15 +162,11 @@ def save_feeds(net: Any, feeds: list[dict[str, np.ndarray]], path: Path) -> Path
 
 def measure(name: str, feeds_file: Path, repeats: int, hogs: int) -> dict[str, Any]:
     """One worker process for ``name`` with ``hogs`` busy processes beside it."""
-    procs = [_hog() for _ in range(hogs)]
-    try:
+    from cegc_ros.tools.bench_contention import busy_processes
+    with busy_processes(hogs):
         out = subprocess.run([sys.executable, "-m", "cegc_ros.tools.bench_runtimes", "--worker", name,
                               "--feeds", str(feeds_file), "--repeats", str(repeats)],
                              capture_output=True, text=True, check=False)
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
     if out.returncode != 0:
         tail = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise BenchError(f"{name} with {hogs} hogs failed (exit {out.returncode}): {tail}")
@@ -240,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['logit_diff']:.1e} | {r['candidates_equal']:.3f} |")
     machine = machine_line()
     print(f"\n{machine}; {len(feeds)} pairs of {args.size} points, {args.repeats} repeats\n"
-          f"command: python -m cegc_ros.tools.bench_runtimes {' '.join(argv if argv is not None else sys.argv[1:])}")
+          f"command: python -m cegc_ros.tools.bench_runtimes {shlex.join(argv if argv is not None else sys.argv[1:])}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"machine": machine, "results": results}, indent=1))

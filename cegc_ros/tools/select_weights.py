@@ -33,22 +33,27 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
     for p in pairs:
         res = register(p.source, p.target)
         T, E = p.T_target_source, res.T_target_source
-        rot_deg = float(rotation_error_deg(T[:3, :3], E[:3, :3]))
-        trans_m = float(np.linalg.norm(T[:3, 3] - E[:3, 3]))
-        correct = bool(rot_deg < 15.0 and trans_m < 0.3)
+
+        def errors(M: np.ndarray) -> tuple[float, float]:
+            return float(rotation_error_deg(T[:3, :3], M[:3, :3])), float(np.linalg.norm(T[:3, 3] - M[:3, 3]))
+
+        def right(M: np.ndarray) -> bool:
+            rot, trans = errors(M)
+            return rot < 15.0 and trans < 0.3
+        rot_deg, trans_m = errors(E)
+        correct = right(E)
         ok.append(res.valid and correct)
         low.append(p.info["overlap"] < 0.3)
         secs.append(res.timings["total"])
         # which of the poses the estimator's verification ranked were right: a wrong result with
         # one there is the verification's miss, without one the candidates'
         hyp = getattr(res, "hypotheses", np.zeros((0, 4, 4)))
-        right = [i for i, H in enumerate(hyp)
-                 if rotation_error_deg(T[:3, :3], H[:3, :3]) < 15.0 and np.linalg.norm(T[:3, 3] - H[:3, 3]) < 0.3]
+        right_ones = [i for i, H in enumerate(hyp) if right(H)]
         if len(hyp):
-            missed.append(bool(right) and not (res.valid and correct))
+            missed.append(bool(right_ones) and not (res.valid and correct))
         if rows is not None:
             rows.append({"overlap": float(p.info["overlap"]), "correct": correct,
-                         "hypotheses": len(hyp), "first_right_hypothesis": right[0] if right else -1,
+                         "hypotheses": len(hyp), "first_right_hypothesis": right_ones[0] if right_ones else -1,
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
