@@ -324,3 +324,30 @@ def test_low_overlap_share_draws_that_share_from_the_low_overlap_band():
     share_low = np.mean(np.array(low) <= 0.3)                  # half drawn from the band: ~0.62
     assert share_plain == pytest.approx(21 / 90, abs=0.04)
     assert share_low == pytest.approx(0.5 + 0.5 * 21 / 90, abs=0.04)
+
+
+def test_a_warm_start_into_fewer_attention_layers_keeps_the_first_ones(tmp_path):
+    """Cutting the network from 2 (self, cross) attention layers to 1 keeps every other weight
+    and the first layers; a trainer state (last.pt) or any other difference must match exactly."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC, ModelConfig
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "cut", max_steps=2)                  # attn_layers 1
+    big_cfg = ModelConfig.from_dict({**cfg.model.to_dict(), "attn_layers": 2})
+    big = CEGC(big_cfg)
+    save_checkpoint(tmp_path / "big.pt", big, {"step": 10, "pairs_seen": 10})
+    trainer = Trainer(cfg, resume=tmp_path / "big.pt", device="cpu", fragments=frags,
+                      val_fragments=frags, progress=False)
+    assert trainer.warm_start["dropped_attention_layers"] == 1
+    got, want = trainer.model.state_dict(), big.state_dict()
+    assert set(got) < set(want) and "context.self_blocks.1.merge.weight" in want
+    assert all(torch.equal(got[k], want[k]) for k in got)
+    trainer.run()
+    _, meta = load_checkpoint(tmp_path / "cut" / "snapshots" / "step_0000002.pt")
+    assert meta["warm_start"]["dropped_attention_layers"] == 1
+    # A wider network is not a cut: it fails as a strict load does.
+    wide = ModelConfig.from_dict({**cfg.model.to_dict(), "attn_layers": 2, "feat_dim": 64})
+    save_checkpoint(tmp_path / "wide.pt", CEGC(wide), {"step": 1})
+    with pytest.raises(RuntimeError, match="size mismatch|Unexpected"):
+        Trainer(cfg, resume=tmp_path / "wide.pt", device="cpu", fragments=frags, val_fragments=frags,
+                progress=False)
