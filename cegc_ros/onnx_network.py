@@ -77,7 +77,7 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
 
         def forward(self, src, tgt, sn, tn, sd, td, extra):  # noqa: ANN001, ANN202
             o = self.model.score_candidates(src, tgt, sn, tn, sd, td, k_learned=learned_candidates,
-                                            extra=extra)
+                                            extra=extra, stack=False)   # any two point counts
             return o.src_overlap_logits, o.tgt_overlap_logits, o.candidates, o.scores
     wrapper = CandidatePath().eval()
     g = torch.Generator().manual_seed(0)

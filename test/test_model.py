@@ -225,3 +225,32 @@ def test_learned_candidates_are_the_nearest_in_feature_space_and_extra_ones_foll
     assert torch.equal(out.candidates[..., :3], sim.topk(3, dim=-1).indices)
     with pytest.raises(ValueError, match="needs k_learned > 0 or extra"):
         model.score_candidates(*args, k_learned=0)
+
+
+@pytest.mark.parametrize("variant", ["ri", "paper"])
+def test_both_clouds_as_one_batch_are_the_per_cloud_network(variant):
+    """CEGC.features stacks equal-shaped clouds into one batch (faster); the outputs are the
+    per-cloud path's, for a batch of two pairs too (each cross block sees its own partner)."""
+    torch.manual_seed(0)
+    cfg = small_cfg(variant=variant)
+    cfg.attn_layers = 2
+    model = CEGC(cfg).eval()
+    one = inputs(96, 96, seed=3)
+    two = [torch.cat([a, b]) for a, b in zip(one, inputs(96, 96, seed=4))]
+    extra = torch.randint(0, 96, (2, 96, 2), generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        for args in (one, two):
+            B = args[0].shape[0]
+            a = model.score_candidates(*args, k_learned=3, extra=extra[:B], stack=True)
+            b = model.score_candidates(*args, k_learned=3, extra=extra[:B], stack=False)
+            assert torch.equal(a.candidates, b.candidates)
+            for x, y in ((a.src_features, b.src_features), (a.tgt_features, b.tgt_features),
+                         (a.scores, b.scores), (a.src_overlap_logits, b.src_overlap_logits)):
+                assert torch.allclose(x, y, atol=1e-5)
+        # the pairs of the batch do not mix: pair 1 alone gives what it gave in the batch
+        alone = model.score_candidates(*[t[1:] for t in two], k_learned=3, extra=extra[1:])
+        batch = model.score_candidates(*two, k_learned=3, extra=extra)
+        assert torch.allclose(alone.scores[0], batch.scores[1], atol=1e-5)
+        # unequal clouds take the per-cloud path
+        out = model.score_candidates(*inputs(96, 80), k_learned=3)
+        assert out.tgt_features.shape == (1, 80, 32)

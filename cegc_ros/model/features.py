@@ -173,3 +173,12 @@ class ContextEnhancer(nn.Module):
             fx, fy = sa(fx, fx), sa(fy, fy)
             fx, fy = ca(fx, fy), ca(fy, fx)
         return fx, fy
+
+    def stacked(self, f: Tensor, b: int) -> Tensor:
+        """The same blocks on both clouds stacked as one batch: f (2b, N, C), the source clouds
+        first -> (2b, N, C). Each cross block attends from every cloud to its partner (the other
+        half of the batch)."""
+        for sa, ca in zip(self.self_blocks, self.cross_blocks):
+            f = sa(f, f)
+            f = ca(f, torch.cat([f[b:], f[:b]]))
+        return f
