@@ -38,6 +38,20 @@ def test_recall_line_per_checkpoint_and_one_line_errors(cache, capsys):
     assert "unknown method 'magic'" in capsys.readouterr().err
 
 
+def test_sensor_picks_the_lidar_pairs(tmp_path, capsys):
+    """--sensor lidar scores a LiDAR cache's pairs; the Kinect default finds none there (one line)."""
+    from cegc_ros.engine import default_weights
+    cfg = views.ViewConfig(fragments=3, pairs=2, copy_pairs=0, max_points=2000)
+    PC.write_shard(tmp_path / PC.shard_name(0, 1), [views.make_room_pairs(splits.room_seed("val", 3), "lidar", cfg)],
+                   {"split": "val"})
+    n = len(PC.PairCache(tmp_path, kinds=("views",), sensors=("lidar",)))
+    assert n >= 1
+    assert select_weights.main([str(tmp_path), str(default_weights()), "--sensor", "lidar"]) == 0
+    assert f"on {n} pairs" in capsys.readouterr().out
+    assert select_weights.main([str(tmp_path), str(default_weights())]) == 1
+    assert "no kinect different-view pairs" in capsys.readouterr().err
+
+
 def test_evaluate_counts_successes_by_overlap():
     import numpy as np
     from types import SimpleNamespace

@@ -4,7 +4,7 @@
         runs/views/best.pt --pairs 40
 
 The engine at node defaults (each checkpoint in turn) on ``--pairs`` evenly spaced Kinect
-different-view pairs of a validation pair cache (``cegc-make-pairs --split val``; rooms never
+(``--sensor lidar``: LiDAR) different-view pairs of a validation pair cache (``cegc-make-pairs --split val``; rooms never
 trained on, never real data). Prints one line per checkpoint: recall at 15 deg / 0.3 m, on the
 pairs under and over 30% overlap, median seconds per pair. This is how the shipped weights are
 chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preprocess setting
@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=0, metavar="N",
                     help="thin each cloud to at most N points first (cegc_ros/data/corruption.py; "
                          "seeded per pair): a sparser sensor's view of the same pairs")
+    ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect",
+                    help="the pairs of this sensor model (default kinect; a LiDAR cache: "
+                         "cegc-make-pairs --split val --lidar-fraction 1 ...)")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, stage seconds)")
     args = ap.parse_args(argv)
@@ -99,9 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
         pre, eng = _overrides(args.set)
-        cache = PairCache(args.cache, kinds=("views",), sensors=("kinect",))
+        cache = PairCache(args.cache, kinds=("views",), sensors=(args.sensor,))
         if len(cache) == 0:
-            raise ValueError(f"{args.cache}: no Kinect different-view pairs")
+            raise ValueError(f"{args.cache}: no {args.sensor} different-view pairs")
         idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
         pairs = [cache[int(i)] for i in idx]
         if args.points > 0:
