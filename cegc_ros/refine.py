@@ -16,7 +16,9 @@ import numpy as np
 def icp(source: np.ndarray, target: np.ndarray, T: np.ndarray, max_distance: float, iterations: int,
         max_points: int, seed: int = 0) -> np.ndarray:
     """Open3D point-to-plane ICP of (N, 3) onto (M, 3) metres, started from T (4x4); at most
-    max_points per cloud. Returns T unchanged when ICP produces a non-finite transform.
+    max_points per cloud. Returns T unchanged when ICP produces a non-finite transform, or when
+    Open3D finds its 6x6 system singular (it raises then: a plane, a line, a point, whose pose
+    point-to-plane ICP cannot pin down; the legacy ICP returned its start instead).
 
     Open3D's tensor pipeline (``o3d.t``): the same poses as the legacy ``registration_icp`` to
     1e-9 (test_refine; 1e-14 on the benchmark pairs), in 0.5-0.9x its time (docs/performance.md)."""
@@ -30,9 +32,14 @@ def icp(source: np.ndarray, target: np.ndarray, T: np.ndarray, max_distance: flo
 
     ps, pt = capped(source), capped(target)
     pt.estimate_normals(max_nn=30, radius=2.0 * max_distance)
-    res = treg.icp(ps, pt, max_distance, o3d.core.Tensor(np.asarray(T, np.float64)),
-                   treg.TransformationEstimationPointToPlane(),
-                   treg.ICPConvergenceCriteria(max_iteration=iterations))
+    try:
+        res = treg.icp(ps, pt, max_distance, o3d.core.Tensor(np.asarray(T, np.float64)),
+                       treg.TransformationEstimationPointToPlane(),
+                       treg.ICPConvergenceCriteria(max_iteration=iterations))
+    except RuntimeError as err:
+        if "Singular" not in str(err):
+            raise
+        return T
     out = np.asarray(res.transformation.numpy(), np.float64)
     return out if np.isfinite(out).all() else T
 

@@ -51,6 +51,21 @@ def test_icp_gives_the_legacy_pipelines_pose_and_recovers_the_truth(seed):
     assert np.isfinite(icp(source, target + 50.0, start, 0.1, 30, max_points=10000)).all()
 
 
+def test_icp_on_a_plane_keeps_the_start_and_the_engine_registers_a_floor():
+    """Point-to-plane ICP cannot pin a plane's in-plane motion: Open3D's tensor ICP raises on
+    its singular system; icp returns the start pose, and the engine registers two views of a
+    flat floor (the pose from its estimator) instead of raising."""
+    from cegc_ros.engine import Registrar
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(0, 2, (3000, 2)), np.zeros(3000)]
+    T = np.eye(4)
+    T[:3, 3] = [0.01, -0.02, 0.0]
+    np.testing.assert_array_equal(icp(floor, floor, T, 0.05, 30, 5000), T)
+    res = Registrar.from_checkpoint(device="cpu").register(floor[:2000], floor[1000:] + [0.1, 0.0, 0.0])
+    assert np.isfinite(res.T_target_source).all() and res.refined in ("icp", "none")
+    assert abs(res.T_target_source[2, 3]) < 0.05                 # stays on the floor
+
+
 def test_features_match_the_legacy_pipeline_the_network_was_trained_on():
     import open3d as o3d
     pts = room_corner(1024, 3) / 6.0                                 # normalised-frame size
