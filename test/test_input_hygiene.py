@@ -60,14 +60,46 @@ def test_drop_isolated_keeps_exactly_what_a_full_search_keeps(seed):
     pairs = np.repeat(rng.uniform(-6, 6, (20, 3)), 2, axis=0) + rng.normal(0, 0.01, (40, 3))
     pts = np.concatenate([surface, strays, near, pairs])
     kept, n = drop_isolated(pts, seed=seed)
-    # brute force: every point's neighbours within the radius, from the same spacing estimate
+    # brute force: every point's neighbours within its radius, from the same spacing estimate,
+    # the radius grown by the point's range over the sample's median range (at least 1x)
     tree = cKDTree(pts)
     probe = pts[np.random.default_rng(seed).choice(len(pts), 2000, replace=False)]
     spacing = np.median(tree.query(probe, k=2)[0][:, 1])
-    counts = np.array([len(c) - 1 for c in tree.query_ball_point(pts, ISOLATED_RADIUS * spacing)])
+    scale = np.maximum(1.0, np.linalg.norm(pts, axis=1) / np.median(np.linalg.norm(probe, axis=1)))
+    counts = np.array([len(c) - 1 for c in tree.query_ball_point(pts, ISOLATED_RADIUS * spacing * scale)])
     expect = pts[counts >= ISOLATED_MIN_NEIGHBOURS]
     assert n == len(pts) - len(expect) and 100 < n < 250          # the strays, not the surface
     np.testing.assert_array_equal(kept, expect)
+    assert (scale[counts < ISOLATED_MIN_NEIGHBOURS] > 1).any()    # the grown radii were used
+
+
+def _sweep(rng: np.random.Generator) -> np.ndarray:
+    """A LiDAR-like sweep from a sensor 1.7 m above flat ground: 16 rings of 900 rays (0.4 deg
+    apart) at -15 .. -1 deg elevation, returns out to 60 m, 2 cm range noise."""
+    az = np.deg2rad(np.arange(900) * 0.4)
+    rays = []
+    for el in np.deg2rad(np.linspace(-15.0, -1.0, 16)):
+        r = 1.7 / np.sin(-el) + rng.normal(0, 0.02, az.shape)
+        keep = r < 60.0
+        rays.append(np.c_[r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
+                          np.full(az.shape, -1.7)][keep])
+    return np.concatenate(rays)
+
+
+def test_far_returns_of_a_scanner_are_not_isolated_points():
+    """A scanner's rays spread with the range, so the far rings of a LiDAR sweep are much
+    sparser than its median spacing: each point's radius grows with its range, so they are
+    kept, while lone returns in the air are still dropped."""
+    rng = np.random.default_rng(0)
+    ground = _sweep(rng)
+    r = np.linalg.norm(ground, axis=1)
+    strays = rng.uniform(-30, 30, (60, 3)) * [1, 1, 0.2] + [0, 0, 4.0]   # returns in the air
+    pts = np.concatenate([ground, strays])
+    kept, n = drop_isolated(pts)
+    kept_ground = np.isin(ground.view([("", float)] * 3).ravel(), kept.view([("", float)] * 3).ravel())
+    assert (r > 30).sum() > 1000 and kept_ground[r > 30].all()   # the far rings, every point
+    assert kept_ground.mean() > 0.999
+    assert 0.9 * len(strays) <= n <= len(strays) + 0.001 * len(ground)
 
 
 def test_robust_extent_ignores_a_few_per_cent_of_flying_pixels():
