@@ -33,7 +33,8 @@ def test_recall_line_per_checkpoint_and_one_line_errors(cache, capsys):
     assert "--set 'engine.bogus=1'" in capsys.readouterr().err
     assert select_weights.main([str(cache), str(default_weights()), "--peers", "sc2pcr+icp"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 2 and lines[1].startswith("sc2pcr+icp: recall ") and f"on {n_views} pairs" in lines[1]
+    assert len(lines) == 3 and lines[1].startswith("sc2pcr+icp: recall ") and f"on {n_views} pairs" in lines[1]
+    assert lines[2].startswith(f"  against {default_weights()}: won ")          # on the same pairs
     assert select_weights.main([str(cache), str(default_weights()), "--peers", "magic"]) == 1
     assert "unknown method 'magic'" in capsys.readouterr().err
 
@@ -50,6 +51,22 @@ def test_sensor_picks_the_lidar_pairs(tmp_path, capsys):
     assert f"on {n} pairs" in capsys.readouterr().out
     assert select_weights.main([str(tmp_path), str(default_weights())]) == 1
     assert "no kinect different-view pairs" in capsys.readouterr().err
+
+
+def test_seeds_pool_the_recall_and_the_second_checkpoint_is_held_against_the_first(cache, capsys):
+    import numpy as np
+    from cegc_ros.engine import default_weights
+    w = str(default_weights())
+    assert select_weights.main([cache.as_posix(), w, w, "--seeds", "0,1", "--set", "engine.candidates=fpfh"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and "on 2 pairs x 2 seeds" in lines[0] and "of 2," in lines[0]   # 1 low pair x 2
+    assert lines[1].split(", median")[0] == lines[0].split(", median")[0]
+    assert lines[2] == f"  against {w}: won 0, lost 0 (sign test p = 1.000)"   # the same weights
+    ok = np.array([True] * 17 + [False] * 4 + [True] * 5)
+    ref = np.array([False] * 17 + [True] * 4 + [True] * 5)
+    won, lost, p = select_weights.sign_test(ok, ref)
+    assert (won, lost) == (17, 4) and p == pytest.approx(15094 / 2 ** 21)    # 2 x P(X <= 4), X ~ B(21, 1/2)
+    assert select_weights.sign_test(ref, ref)[2] == 1.0
 
 
 def test_evaluate_counts_successes_by_overlap():

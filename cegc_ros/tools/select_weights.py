@@ -11,18 +11,22 @@ chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preproces
 (``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings;
 ``--points N`` thins every cloud to N points first (a sparser sensor);
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
+``--seeds 0,1`` runs each checkpoint at each sampling seed and pools its recall; from the second
+method on a line says how many evaluations it won and lost against the first, with a sign test.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 
-def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float]:
+def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, Any]:
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
     and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
@@ -57,13 +61,35 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, float
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
-    ok, low = np.array(ok, bool), np.array(low, bool)
+    return summary(np.array(ok, bool), np.array(low, bool), secs, missed)
 
+
+def summary(ok: np.ndarray, low: np.ndarray, secs: list[float], missed: list[bool]) -> dict[str, Any]:
+    """Per-pair outcomes (N,) ``ok`` and ``low`` (under 30% overlap) -> recall overall / under /
+    from 30%, the median seconds, the verification misses (-1: none reported) and ``ok`` itself."""
     def share(mask: np.ndarray) -> float:
         return float(ok[mask].mean()) if mask.any() else float("nan")
     return {"recall": float(ok.mean()), "recall_low": share(low), "recall_high": share(~low),
             "n_low": int(low.sum()), "median_s": float(np.median(secs)),
-            "verification_misses": int(sum(missed)) if missed else -1}
+            "verification_misses": int(sum(missed)) if missed else -1, "ok": ok, "low": low,
+            "secs": list(secs), "missed": list(missed)}
+
+
+def pooled(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`evaluate`'s results of one method on the same pairs at several seeds, as one."""
+    cat = {k: [x for r in results for x in r[k]] for k in ("ok", "low", "secs", "missed")}
+    return summary(np.array(cat["ok"], bool), np.array(cat["low"], bool), cat["secs"],
+                   [bool(m) for m in cat["missed"]] if all(r["verification_misses"] >= 0 for r in results) else [])
+
+
+def sign_test(ok: np.ndarray, reference: np.ndarray) -> tuple[int, int, float]:
+    """(won, lost, two-sided sign-test p) of outcomes ``ok`` against ``reference`` on the same
+    (pair, seed) evaluations; the pairs both got right or both missed do not count."""
+    from math import comb
+    won, lost = int((ok & ~reference).sum()), int((~ok & reference).sum())
+    n, k = won + lost, min(won, lost)
+    p = min(1.0, 2.0 * sum(comb(n, i) for i in range(k + 1)) / 2.0 ** n) if n else 1.0
+    return won, lost, p
 
 
 def _overrides(items: list[str]):
@@ -92,6 +118,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=0, metavar="N",
                     help="thin each cloud to at most N points first (cegc_ros/data/corruption.py; "
                          "seeded per pair): a sparser sensor's view of the same pairs")
+    ap.add_argument("--seeds", default="", metavar="LIST",
+                    help="comma-separated preprocess.seed values: each checkpoint runs at each "
+                         "and its recall is pooled over them (a new seed redraws the grid "
+                         "sampling, which alone flips ~10%% of the verdicts: docs/pipeline.md); "
+                         "default: the one seed of --set or the defaults")
     ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect",
                     help="the pairs of this sensor model (default kinect; a LiDAR cache: "
                          "cegc-make-pairs --split val --lidar-fraction 1 ...)")
@@ -118,19 +149,32 @@ def main(argv: list[str] | None = None) -> int:
         for m in peers:
             if m not in baselines.METHODS:
                 raise ValueError(f"--peers: unknown method {m!r}, expected some of {', '.join(baselines.METHODS)}")
-        runs = [(ck, Registrar.from_checkpoint(ck, device="cpu", preprocess=pre, engine=eng).register)
-                for ck in args.checkpoints]
-        runs += [(m, lambda s, t, m=m: baselines.register(m, s, t)) for m in peers]
+        seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or [pre.seed]
         rows: list[dict] = []
-        for name, register in runs:
-            start = len(rows)
-            r = evaluate(register, pairs, rows)
-            for row in rows[start:]:
-                row["run"] = name
-            print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs (<30% overlap: {r['recall_low']:.2f}"
+        first: dict[str, Any] | None = None
+        for name in list(args.checkpoints) + peers:
+            per_seed = []
+            for seed in (seeds if name in args.checkpoints else [pre.seed]):
+                if name in args.checkpoints:
+                    register = Registrar.from_checkpoint(name, device="cpu", engine=eng,
+                                                         preprocess=dataclasses.replace(pre, seed=seed)).register
+                else:
+                    register = lambda s, t, m=name: baselines.register(m, s, t)   # noqa: E731
+                start = len(rows)
+                per_seed.append(evaluate(register, pairs, rows))
+                for row in rows[start:]:
+                    row["run"], row["seed"] = name, seed
+            r = pooled(per_seed)
+            times = f" x {len(per_seed)} seeds" if len(per_seed) > 1 else ""
+            print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs{times} (<30% overlap: {r['recall_low']:.2f}"
                   f" of {r['n_low']}, >=30%: {r['recall_high']:.2f}), median {r['median_s']:.2f} s"
                   + (f"; wrong with a right pose among the verified: {r['verification_misses']}"
                      if r["verification_misses"] >= 0 else ""), flush=True)
+            if first is None:
+                first = {"name": name, **r}
+            elif len(r["ok"]) == len(first["ok"]):
+                won, lost, p = sign_test(r["ok"], first["ok"])
+                print(f"  against {first['name']}: won {won}, lost {lost} (sign test p = {p:.3f})", flush=True)
         if args.dump is not None:
             _write_csv(args.dump, rows)
     except (OSError, ValueError, PairCacheError, CheckpointError) as err:
