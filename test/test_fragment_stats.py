@@ -46,6 +46,24 @@ def test_overlap_and_fpfh_inliers_of_a_room_corner_and_its_moved_half():
     assert same > 0.95 and F.pair_stats(corner, noisy, np.eye(4))["fpfh_inlier"] < 0.5 * same
 
 
+def test_overlap_planar_tells_a_bare_floor_from_clutter_in_the_overlap():
+    """The source overlaps the target on a bare floor, or on a heap of boxes standing on it."""
+    rng = np.random.default_rng(4)
+    floor = plane(30000, 0.0005, 5)
+    boxes = np.concatenate([rng.uniform(0, 0.3, (3000, 3)) * [1, 1, 1] + c for c in
+                            ([1.2, 1.2, 0.0], [1.5, 1.3, 0.1], [1.3, 1.6, 0.05])])   # filled cubes
+    target = np.concatenate([floor, boxes])
+    bare = F._grid(floor[floor[:, 0] < 1.0], F.GRID)                 # overlaps on the floor only
+    cluttered = F._grid(np.concatenate([floor[floor[:, 0] > 1.1], boxes]), F.GRID)
+    target = F._grid(target, F.GRID)
+    assert F.overlap_planar(bare, target, np.eye(4)) > 0.9
+    assert F.overlap_planar(cluttered, target, np.eye(4)) < F.overlap_planar(bare, target, np.eye(4)) - 0.2
+    far = np.eye(4)
+    far[:3, 3] = [10.0, 0.0, 0.0]
+    assert np.isnan(F.overlap_planar(bare, target, far))
+    assert "overlap_planar" in F.COLUMNS
+
+
 def test_bands_summarise_by_the_measured_overlap():
     stats = [dict.fromkeys(F.COLUMNS, 1.0) | {"overlap": o} for o in (0.1, 0.2, 0.4, 0.9)]
     rows = F.summarise(stats)

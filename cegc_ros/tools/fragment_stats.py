@@ -14,6 +14,8 @@ For every pair, both clouds on one 2.5 cm grid (the 3DMatch fragments' own voxel
   the sum): floor, walls, table tops;
 - ``overlap``: share of source points within 1.5 voxels of a target point after the ground truth
   (``refine.fitness``);
+- ``overlap_planar``: the share of those overlapping source points whose neighbourhood is a plane
+  (as ``planar``): whether the overlap holds bare floor and walls or furniture and clutter;
 - ``fpfh_inlier``: the classical pipelines' feature quality on this pair: on a 5 cm grid, normals
   (radius 10 cm) and FPFH (radius 25 cm, 100 neighbours, Open3D), each source point's nearest
   target descriptor is a true match when that target point lies within 10 cm of the source point
@@ -58,20 +60,31 @@ BANDS = ((0.0, 0.3), (0.3, 0.5), (0.5, 1.01))
 
 def cloud_stats(points: np.ndarray) -> dict[str, float]:
     """(N, 3) metres, already on the measuring grid -> points, extent_m, spacing_mm, noise_mm, planar."""
-    from scipy.spatial import cKDTree
     pts = np.asarray(points, np.float64)
     if len(pts) <= PLANE_NN:
         raise ValueError(f"a cloud of {len(pts)} points is too small to measure (needs > {PLANE_NN})")
-    d, nn = cKDTree(pts).query(pts, k=PLANE_NN + 1, workers=-1)
-    nb = pts[nn]                                                     # (N, k+1, 3), the point itself first
-    nb = nb - nb.mean(1, keepdims=True)
-    ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", nb, nb) / nb.shape[1])   # ascending (N, 3)
-    ev = np.clip(ev, 0.0, None)
+    d, ev = _neighbourhoods(pts)
     return {"points": float(len(pts)),
             "extent_m": extent(pts),
             "spacing_mm": 1e3 * float(np.median(d[:, 1])),
             "noise_mm": 1e3 * float(np.median(np.sqrt(ev[:, 0]))),
-            "planar": float(np.mean(ev[:, 0] < PLANAR_SHARE * ev.sum(1)))}
+            "planar": float(np.mean(_planar(ev)))}
+
+
+def _neighbourhoods(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) -> distances (N, PLANE_NN + 1) to each point's nearest neighbours (itself first)
+    and the ascending eigenvalues (N, 3) of their covariance."""
+    from scipy.spatial import cKDTree
+    d, nn = cKDTree(pts).query(pts, k=PLANE_NN + 1, workers=-1)
+    nb = pts[nn]                                                     # (N, k+1, 3), the point itself first
+    nb = nb - nb.mean(1, keepdims=True)
+    ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", nb, nb) / nb.shape[1])   # ascending (N, 3)
+    return d, np.clip(ev, 0.0, None)
+
+
+def _planar(ev: np.ndarray) -> np.ndarray:
+    """(N, 3) ascending covariance eigenvalues -> (N,) bool: the neighbourhood is a plane."""
+    return ev[:, 0] < PLANAR_SHARE * ev.sum(1)
 
 
 def smooth_surface(points: np.ndarray, k: int) -> np.ndarray:
@@ -126,11 +139,27 @@ def pair_stats(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> dict[st
     a, b = cloud_stats(src), cloud_stats(tgt)
     out = {k: 0.5 * (a[k] + b[k]) for k in a}
     out["overlap"] = fitness(src, tgt, T, 1.5 * GRID)               # share of source points on the target
+    out["overlap_planar"] = overlap_planar(src, tgt, T)
     out["fpfh_inlier"] = fpfh_inlier_ratio(source, target, T)
     return out
 
 
-COLUMNS = ("points", "extent_m", "spacing_mm", "noise_mm", "planar", "overlap", "fpfh_inlier")
+def overlap_planar(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> float:
+    """Share of the source's overlapping points (within 1.5 grid voxels of a target point after
+    T; both on the measuring grid) whose neighbourhood is a plane: what the overlap holds, bare
+    floor and walls (near 1) or furniture and clutter; nan when nothing overlaps."""
+    from scipy.spatial import cKDTree
+    if len(source) <= PLANE_NN:
+        raise ValueError(f"a cloud of {len(source)} points is too small to measure (needs > {PLANE_NN})")
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    near, _ = cKDTree(target).query(moved, k=1, distance_upper_bound=1.5 * GRID * (1.0 + 1e-9))
+    inside = np.isfinite(near)
+    if not inside.any():
+        return float("nan")
+    return float(np.mean(_planar(_neighbourhoods(source)[1])[inside]))
+
+
+COLUMNS = ("points", "extent_m", "spacing_mm", "noise_mm", "planar", "overlap", "overlap_planar", "fpfh_inlier")
 
 
 def table(rows: list[tuple[str, int, dict[str, float]]]) -> str:
