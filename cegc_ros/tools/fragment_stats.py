@@ -60,31 +60,26 @@ BANDS = ((0.0, 0.3), (0.3, 0.5), (0.5, 1.01))
 
 def cloud_stats(points: np.ndarray) -> dict[str, float]:
     """(N, 3) metres, already on the measuring grid -> points, extent_m, spacing_mm, noise_mm, planar."""
+    return _measure(points)[0]
+
+
+def _measure(points: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+    """:func:`cloud_stats` and the (N,) bool mask of the points whose neighbourhood is a plane."""
+    from scipy.spatial import cKDTree
     pts = np.asarray(points, np.float64)
     if len(pts) <= PLANE_NN:
         raise ValueError(f"a cloud of {len(pts)} points is too small to measure (needs > {PLANE_NN})")
-    d, ev = _neighbourhoods(pts)
-    return {"points": float(len(pts)),
-            "extent_m": extent(pts),
-            "spacing_mm": 1e3 * float(np.median(d[:, 1])),
-            "noise_mm": 1e3 * float(np.median(np.sqrt(ev[:, 0]))),
-            "planar": float(np.mean(_planar(ev)))}
-
-
-def _neighbourhoods(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) -> distances (N, PLANE_NN + 1) to each point's nearest neighbours (itself first)
-    and the ascending eigenvalues (N, 3) of their covariance."""
-    from scipy.spatial import cKDTree
     d, nn = cKDTree(pts).query(pts, k=PLANE_NN + 1, workers=-1)
     nb = pts[nn]                                                     # (N, k+1, 3), the point itself first
     nb = nb - nb.mean(1, keepdims=True)
     ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", nb, nb) / nb.shape[1])   # ascending (N, 3)
-    return d, np.clip(ev, 0.0, None)
-
-
-def _planar(ev: np.ndarray) -> np.ndarray:
-    """(N, 3) ascending covariance eigenvalues -> (N,) bool: the neighbourhood is a plane."""
-    return ev[:, 0] < PLANAR_SHARE * ev.sum(1)
+    ev = np.clip(ev, 0.0, None)
+    planar = ev[:, 0] < PLANAR_SHARE * ev.sum(1)
+    return {"points": float(len(pts)),
+            "extent_m": extent(pts),
+            "spacing_mm": 1e3 * float(np.median(d[:, 1])),
+            "noise_mm": 1e3 * float(np.median(np.sqrt(ev[:, 0]))),
+            "planar": float(np.mean(planar))}, planar
 
 
 def smooth_surface(points: np.ndarray, k: int) -> np.ndarray:
@@ -136,27 +131,29 @@ def fpfh_inlier_ratio(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> 
 def pair_stats(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> dict[str, float]:
     """Both clouds' :func:`cloud_stats` (averaged), their overlap and the FPFH inlier ratio."""
     src, tgt = _grid(source, GRID), _grid(target, GRID)
-    a, b = cloud_stats(src), cloud_stats(tgt)
+    (a, planar), (b, _) = _measure(src), _measure(tgt)
     out = {k: 0.5 * (a[k] + b[k]) for k in a}
     out["overlap"] = fitness(src, tgt, T, 1.5 * GRID)               # share of source points on the target
-    out["overlap_planar"] = overlap_planar(src, tgt, T)
+    out["overlap_planar"] = overlap_planar(src, tgt, T, planar)
     out["fpfh_inlier"] = fpfh_inlier_ratio(source, target, T)
     return out
 
 
-def overlap_planar(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> float:
+def overlap_planar(source: np.ndarray, target: np.ndarray, T: np.ndarray,
+                   planar: np.ndarray | None = None) -> float:
     """Share of the source's overlapping points (within 1.5 grid voxels of a target point after
     T; both on the measuring grid) whose neighbourhood is a plane: what the overlap holds, bare
-    floor and walls (near 1) or furniture and clutter; nan when nothing overlaps."""
+    floor and walls (near 1) or furniture and clutter; nan when nothing overlaps. ``planar``:
+    the source's mask from :func:`_measure` when the caller has it."""
     from scipy.spatial import cKDTree
-    if len(source) <= PLANE_NN:
-        raise ValueError(f"a cloud of {len(source)} points is too small to measure (needs > {PLANE_NN})")
+    if planar is None:
+        planar = _measure(source)[1]
     moved = source @ T[:3, :3].T + T[:3, 3]
     near, _ = cKDTree(target).query(moved, k=1, distance_upper_bound=1.5 * GRID * (1.0 + 1e-9))
     inside = np.isfinite(near)
     if not inside.any():
         return float("nan")
-    return float(np.mean(_planar(_neighbourhoods(source)[1])[inside]))
+    return float(np.mean(planar[inside]))
 
 
 COLUMNS = ("points", "extent_m", "spacing_mm", "noise_mm", "planar", "overlap", "overlap_planar", "fpfh_inlier")

@@ -154,10 +154,12 @@ def main(argv: list[str] | None = None) -> int:
         first: dict[str, Any] | None = None
         for name in list(args.checkpoints) + peers:
             per_seed = []
-            for seed in (seeds if name in args.checkpoints else [pre.seed]):
-                if name in args.checkpoints:
-                    register = Registrar.from_checkpoint(name, device="cpu", engine=eng,
-                                                         preprocess=dataclasses.replace(pre, seed=seed)).register
+            registrar = (Registrar.from_checkpoint(name, device="cpu", preprocess=pre, engine=eng)
+                         if name in args.checkpoints else None)
+            for seed in (seeds if registrar else [pre.seed]):
+                if registrar:
+                    registrar.update(preprocess=dataclasses.replace(pre, seed=seed))
+                    register = registrar.register
                 else:
                     register = lambda s, t, m=name: baselines.register(m, s, t)   # noqa: E731
                 start = len(rows)
