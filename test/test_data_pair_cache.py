@@ -100,6 +100,13 @@ def test_cli_generates_resumes_and_refuses_other_settings(tmp_path, capsys):
     assert meta["split"] == "val" and meta["seconds"] > 0 and meta["generator"]
     assert make_pairs.main(args[:-1] + ["--pairs", "3", "--quiet"]) == 1
     assert "other settings" in capsys.readouterr().err
+    # a cache made before --wall-views existed had none: resumable without it, refused with it
+    manifest = json.loads((out / PC.MANIFEST).read_text())
+    del manifest["wall_views"]
+    (out / PC.MANIFEST).write_text(json.dumps(manifest))
+    assert make_pairs.main(args) == 0
+    assert make_pairs.main(args + ["--wall-views", "0.5"]) == 1
+    assert "wall_views" in capsys.readouterr().err
     capsys.readouterr()
     assert make_pairs.main(["--stats", "--out", str(out)]) == 0
     report = json.loads(capsys.readouterr().out)

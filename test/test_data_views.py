@@ -134,3 +134,27 @@ def test_make_bag_writes_view_pairs_that_read_back_exactly(tmp_path, monkeypatch
         with pytest.raises(SystemExit) as exc:
             make_bag.main(bad + ["--pairs", "1", "--out", str(tmp_path / "x")])
         assert exc.value.code == 2
+
+
+def test_wall_views_look_at_walls_and_zero_keeps_every_draw(kinect_room):
+    seed = splits.room_seed("train", 3)
+    room = views.get_rich_room(seed)
+    rng = np.random.default_rng(0)
+    foci = np.array([views._wall_focus(room, rng) for _ in range(200)])
+    # on the footprint's boundary (a wall's plane), at the documented heights
+    poly = room.footprint
+    a, b = poly, np.roll(poly, -1, 0)
+    ab = b - a
+    s = np.clip(np.einsum("pkd,kd->pk", foci[:, None, :2] - a[None], ab) / (ab ** 2).sum(1), 0, 1)
+    d = np.linalg.norm(foci[:, None, :2] - (a[None] + s[..., None] * ab[None]), axis=-1).min(1)
+    assert d.max() < 1e-9
+    assert foci[:, 2].min() >= 0.8 - 1e-9 and foci[:, 2].max() <= min(1.8, room.size[2] - 0.3)
+    # 0 is the generator as before: the same clouds and poses as the default config
+    zero = views.make_room_pairs(seed, "kinect", replace(SMALL, wall_views=0.0))
+    assert all(np.array_equal(x, y) for x, y in zip(zero.clouds, kinect_room.clouds))
+    # all focuses on walls: other views; the LiDAR rooms are untouched
+    walls = views.make_room_pairs(seed, "kinect", replace(SMALL, wall_views=1.0))
+    assert not np.array_equal(walls.clouds[0][:100], kinect_room.clouds[0][:100])
+    lidar = views.make_room_pairs(splits.room_seed("train", 4), "lidar", replace(SMALL, wall_views=1.0))
+    assert np.array_equal(lidar.clouds[0], views.make_room_pairs(
+        splits.room_seed("train", 4), "lidar", SMALL).clouds[0])

@@ -12,7 +12,8 @@ rendered) at 0.5-1.9 m height, starting at a free floor point 0.8-3.5 m from a *
 of furniture or a random point of the room) and looking at it, then drifting (up to 0.3 m/s)
 and turning (up to 30 deg/s). The fragments of a room share two or three focuses, so some look
 at the same things from different sides (high overlap under a large rotation) and some look
-elsewhere (low or no overlap). A LiDAR fragment is a robot (0.3-1.0 m) or backpack (1.4-2.0 m)
+elsewhere (low or no overlap). With ``wall_views`` > 0, that share of the focuses is a point on
+a wall (:func:`_wall_focus`), so those fragments overlap on the room's large planes. A LiDAR fragment is a robot (0.3-1.0 m) or backpack (1.4-2.0 m)
 path of ``sweeps`` sweeps at a free floor point, moving up to 1 m/s with any heading.
 
 Ground truth and overlap. ``T_target_source = inv(T_world_target) @ T_world_source`` maps source
@@ -57,6 +58,9 @@ class ViewConfig:
     overlap_range: tuple[float, float] = (0.1, 0.9)
     overlap_radius: float | None = None         # None: 0.0375 (kinect) / 0.1 (lidar)
     max_points: int = 20000
+    #: Share of a Kinect room's focuses put on a wall instead (see :func:`_wall_focus`); 0 keeps
+    #: every draw of the generator as it was (the caches made before it stay valid).
+    wall_views: float = 0.0
 
     def radius(self, sensor: str) -> float:
         if self.overlap_radius is not None:
@@ -135,6 +139,21 @@ def _focus_points(room: RichRoom, rng: np.random.Generator, n: int) -> np.ndarra
             p = np.r_[room.grid.sample(rng, 0.2)[0], rng.uniform(0.3, 1.5)]
         out.append(p)
     return np.array(out)
+
+
+def _wall_focus(room: RichRoom, rng: np.random.Generator) -> np.ndarray:
+    """(3,) a point on a wall of the room (walls by length, 20-80% along, 0.8-1.8 m high).
+
+    Why: real handheld fragments overlap mostly on walls and large furniture faces (a third of
+    the real low-overlap SUN3D pair's overlap is plane, against 9-14% of the synthetic pairs' at
+    every overlap; docs/data.md); a fragment looking at a wall shares its large planes with the
+    other fragments that see that wall.
+    """
+    lengths = np.array([w.length for w in room.walls])
+    wall = room.walls[int(rng.choice(len(lengths), p=lengths / lengths.sum()))]
+    s = rng.uniform(0.2, 0.8) * wall.length
+    z = min(rng.uniform(0.8, 1.8), room.size[2] - 0.3)
+    return np.r_[wall.at(s), z]
 
 
 def kinect_path(room: RichRoom, rng: np.random.Generator, focus: np.ndarray,
@@ -259,6 +278,12 @@ def make_room_pairs(seed: int, sensor: str = "kinect", config: ViewConfig = View
     rng = np.random.default_rng([int(seed), 0x71E5, salt])
     F = config.fragments
     focus = _focus_points(room, rng, int(rng.integers(2, 4)))
+    if config.wall_views > 0 and sensor == "kinect" and room.walls:
+        # its own stream, so that every other draw stays what it was without wall views
+        wall_rng = np.random.default_rng([int(seed), 0xA11, salt])
+        for i in range(len(focus)):
+            if wall_rng.random() < config.wall_views:
+                focus[i] = _wall_focus(room, wall_rng)
     clouds, codes, poses = [], [], []
     for j in range(F):
         if isinstance(model, KinectSensor):

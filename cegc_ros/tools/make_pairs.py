@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="copy-protocol pairs per room (default 1)")
     p.add_argument("--max-points", type=int, default=20000,
                    help="cap on the points of a fragment (default 20000)")
+    p.add_argument("--wall-views", type=float, default=0.0,
+                   help="share of a Kinect room's focuses put on a wall (default 0: as the "
+                        "caches before it; docs/data.md)")
     p.add_argument("--stats", action="store_true",
                    help="print what the cache at --out holds (pairs, overlap histogram, "
                         "throughput) and exit")
@@ -63,7 +66,11 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
     return {"split": args.split, "rooms_per_shard": args.rooms_per_shard,
             "lidar_fraction": args.lidar_fraction, "fragments": args.fragments,
             "pairs": args.pairs, "copy_pairs": args.copy_pairs, "max_points": args.max_points,
-            "overlap_range": [0.1, 0.9]}
+            "overlap_range": [0.1, 0.9], "wall_views": args.wall_views}
+
+
+#: What a setting was before cache.json recorded it (the caches made before it had these).
+_SETTING_BEFORE = {"wall_views": 0.0}
 
 
 def _usage_errors(args: argparse.Namespace) -> str | None:
@@ -76,7 +83,8 @@ def _usage_errors(args: argparse.Namespace) -> str | None:
               (0.0 <= args.lidar_fraction <= 1.0, "--lidar-fraction must be in [0, 1]"),
               (args.fragments >= 2, "--fragments must be >= 2"),
               (args.pairs >= 0 and args.copy_pairs >= 0, "--pairs/--copy-pairs must be >= 0"),
-              (args.max_points >= 100, "--max-points must be >= 100")]
+              (args.max_points >= 100, "--max-points must be >= 100"),
+              (0.0 <= args.wall_views <= 1.0, "--wall-views must be in [0, 1]")]
     return next((msg for ok, msg in checks if not ok), None)
 
 
@@ -95,7 +103,7 @@ def generate(args: argparse.Namespace) -> int:
     settings = _settings(args)
     manifest = read_manifest(out)
     if manifest:
-        old = {k: manifest.get(k) for k in settings}
+        old = {k: manifest.get(k, _SETTING_BEFORE.get(k)) for k in settings}
         if old != settings:
             diff = {k: (old[k], settings[k]) for k in settings if old[k] != settings[k]}
             print(f"cegc-make-pairs: error: {out} was made with other settings "
@@ -106,7 +114,7 @@ def generate(args: argparse.Namespace) -> int:
     R = args.rooms_per_shard
     n_rooms = min(args.rooms, splits.num_rooms(args.split))
     config = ViewConfig(fragments=args.fragments, pairs=args.pairs, copy_pairs=args.copy_pairs,
-                        max_points=args.max_points)
+                        max_points=args.max_points, wall_views=args.wall_views)
     digest = _generator_digest()
     todo = [k0 for k0 in range(0, n_rooms, R) if not (out / shard_name(k0, k0 + R)).exists()]
     done_before = len(range(0, n_rooms, R)) - len(todo)
