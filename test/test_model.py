@@ -161,6 +161,49 @@ def test_agnn_layer_attention_on_points_is_the_edge_wise_attention():
         assert wk.abs().sum() > 0                                       # the keys still learn
 
 
+def test_agnn_split_first_linear_is_the_concatenated_edges_form():
+    """AGNN.forward maps each layer's per-point input parts once per point (features.py): the
+    same function as the paper's form on concatenated edges, for the shipped weights and random
+    ones, gradients included; and gather() picks the rows x.gather did, at batch 1 and 2."""
+    from cegc_ros.engine import default_weights, load_checkpoint
+    from cegc_ros.model.features import AGNN, gather, knn
+
+    def concatenated(agnn, edges, idx, point_feats):
+        if agnn.c_point:
+            edges = torch.cat([edges, point_feats.unsqueeze(2).expand(-1, -1, edges.shape[2], -1)], -1)
+        f = agnn.layers[0](edges)
+        outs = [f]
+        for layer in agnn.layers[1:]:
+            B, N, K = idx.shape
+            nb = f.gather(1, idx.reshape(B, N * K, 1).expand(-1, -1, f.shape[-1])).reshape(B, N, K, -1)
+            ctr = f.unsqueeze(2).expand_as(nb)
+            f = layer(torch.cat([ctr, nb - ctr], dim=-1))
+            outs.append(f)
+        return agnn.head(torch.cat(outs, dim=-1))
+
+    torch.manual_seed(0)
+    shipped, _ = load_checkpoint(default_weights(), "cpu")
+    for agnn, c_edge, c_point in ((shipped.agnn, 4, 33), (AGNN(6, 0, (8, 8, 16), 24), 6, 0),
+                                  (AGNN(4, 5, (8, 16, 16), 24), 4, 5)):
+        for B in (1, 2):
+            xyz = torch.randn(B, 200, 3)
+            idx = knn(xyz, 12)
+            edges = torch.randn(B, 200, 12, c_edge, requires_grad=True)
+            feats = torch.randn(B, 200, c_point, requires_grad=True) if c_point else None
+            ref = concatenated(agnn, edges, idx, feats)
+            out = agnn(edges, idx, feats)
+            assert out.shape == ref.shape and ref.abs().max() > 0.5
+            torch.testing.assert_close(out, ref, atol=3e-5, rtol=1e-5)
+            inputs = [edges] + ([feats] if c_point else [])
+            g_ref = torch.autograd.grad(ref.square().sum(), inputs)
+            g_out = torch.autograd.grad(out.square().sum(), inputs)
+            for a, b in zip(g_out, g_ref):
+                torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-4)
+            x = torch.randn(B, 50, 7)
+            picked = x.gather(1, idx[:, :, :5].reshape(B, -1, 1).clamp_max(49).expand(-1, -1, 7))
+            assert torch.equal(gather(x, idx[:, :, :5].clamp_max(49)), picked.reshape(B, 200, 5, 7))
+
+
 def test_overlap_labels_from_ground_truth():
     src = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [5.0, 5, 5]]])
     R = torch.eye(3)[None]

@@ -39,6 +39,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .features import gather
+
 
 class SplitPairLinear(nn.Module):
     """Linear layer over the pair descriptor [a_i, b_j, d_ij] without materialising it.
@@ -138,7 +140,7 @@ class CAMS(nn.Module):
         B, N, k = cand.shape
 
         def pick(y: Tensor) -> Tensor:                                   # (B, M, C) -> (B, N, k, C)
-            return y.gather(1, cand.reshape(B, N * k, 1).expand(-1, -1, y.shape[-1])).view(B, N, k, -1)
+            return gather(y, cand)
 
         sx, sy = self._spatial(ox, oy)
         sy_c = pick(sy)                                                  # (B, N, k, c_sp)

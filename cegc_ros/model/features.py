@@ -46,10 +46,16 @@ def knn(xyz: Tensor, k: int) -> Tensor:
 
 
 def gather(x: Tensor, idx: Tensor) -> Tensor:
-    """x (B, N, C), idx (B, N, K) -> (B, N, K, C)."""
-    B, N, K = idx.shape
-    flat = idx.reshape(B, N * K, 1).expand(-1, -1, x.shape[-1])
-    return x.gather(1, flat).reshape(B, N, K, x.shape[-1])
+    """x (B, M, C), idx (B, N, K) indices into M -> (B, N, K, C): x's rows picked.
+
+    A row gather (ONNX ``Gather``) rather than ``x.gather`` over an index expanded to C
+    channels (``Expand`` + ``GatherElements``, 13% of the network's time under ONNX Runtime on
+    a 1.5k-point crop, docs/performance.md); the same values."""
+    B, M, C = x.shape
+    if B == 1:
+        return x[0][idx[0]].unsqueeze(0)
+    base = torch.arange(B, device=idx.device).view(B, 1, 1) * M
+    return x.reshape(B * M, C)[idx + base]
 
 
 def paper_edges(xyz: Tensor, idx: Tensor) -> Tensor:
@@ -99,12 +105,19 @@ class AGNNLayer(nn.Module):
         sum_j a_j W_v fb_j = W_v sum_j a_j fb_j, both bias-free): the same function, two
         (N*K, C) x (C, C) products fewer, 17-25% of the AGNN's time on a 2-core Xeon
         (docs/performance.md); equal to the edge-wise form to float rounding (test_model)."""
-        fb = self.embed(edges)                                           # (B, N, K, C)
+        return self.attend(self.embed(edges))
+
+    def attend(self, fb: Tensor) -> Tensor:
+        """The attention over the edge embeddings fb (B, N, K, C) -> (B, N, C)."""
         centre = fb.max(dim=2).values                                    # (B, N, C)  zeta: max-pool
         qk = (self.q(centre) @ self.k.weight).unsqueeze(2)               # (B, N, 1, C): W_k^T q
         a = torch.softmax((qk * fb).sum(-1) * self.scale, dim=-1)        # (B, N, K)
         agg = self.v((a.unsqueeze(-1) * fb).sum(2))                      # (B, N, C)
         return self.out(agg) + centre
+
+    def from_first_linear(self, pre: Tensor) -> Tensor:
+        """forward() given its first linear map's output pre = embed[0](edges) (B, N, K, C)."""
+        return self.attend(self.embed[1:](pre))
 
 
 class AGNN(nn.Module):
@@ -123,15 +136,26 @@ class AGNN(nn.Module):
 
     def forward(self, edges: Tensor, idx: Tensor, point_feats: Tensor | None) -> Tensor:
         """edges (B, N, K, c_edge), idx (B, N, K), point_feats (B, N, c_point) or None -> (B, N, C2)."""
+        # Each layer's first linear map is split by its input's parts, so the parts that are the
+        # same along a point's K edges are mapped once per point, not per edge: layer 1's input
+        # [edge, point_feat] gives W_e edge + (W_p point_feat + b); layer l's [f_i, f_j - f_i]
+        # gives W_2 f_j + ((W_1 - W_2) f_i + b), W_2 f gathered to the edges. The same function
+        # as mapping the concatenated edges (to float rounding; test_model), without the (N, K)
+        # copies of point features and with a K-th of those products.
+        lin = self.layers[0].embed[0]
         if self.c_point:
-            edges = torch.cat([edges, point_feats.unsqueeze(2).expand(-1, -1, edges.shape[2], -1)], -1)
-        outs = []
-        f = self.layers[0](edges)                                        # (B, N, C1)
-        outs.append(f)
+            ce = edges.shape[-1]
+            pre = (F.linear(edges, lin.weight[:, :ce])
+                   + F.linear(point_feats, lin.weight[:, ce:], lin.bias).unsqueeze(2))
+        else:
+            pre = lin(edges)
+        f = self.layers[0].from_first_linear(pre)                        # (B, N, C1)
+        outs = [f]
         for layer in self.layers[1:]:
-            nb = gather(f, idx)                                          # (B, N, K, C)
-            ctr = f.unsqueeze(2).expand_as(nb)
-            f = layer(torch.cat([ctr, nb - ctr], dim=-1))
+            lin, c = layer.embed[0], f.shape[-1]
+            w_ctr, w_nb = lin.weight[:, :c], lin.weight[:, c:]
+            pre = gather(F.linear(f, w_nb), idx) + F.linear(f, w_ctr - w_nb, lin.bias).unsqueeze(2)
+            f = layer.from_first_linear(pre)
             outs.append(f)
         return self.head(torch.cat(outs, dim=-1))
 
