@@ -49,3 +49,18 @@ def test_bad_requests_are_one_line(tmp_path, capsys):
                    "onnxruntime, onnxruntime-parallel, openvino, openvino-static")
     assert bench_runtimes.main(["--pairs", "0", "--cache", str(tmp_path)]) == 1
     assert "--pairs, --repeats and --rounds >= 1" in capsys.readouterr().err
+
+
+def test_op_profile_splits_the_warm_runs_kernel_time_by_operator(tmp_path, capsys):
+    out = tmp_path / "ops.json"
+    assert bench_runtimes.main(["--size", "1500", "--pairs", "1", "--ops", "3", "--cache", str(tmp_path),
+                                "--json", str(out)]) == 0
+    ops = {r["op"]: r for r in json.loads(out.read_text())["ops"]}
+    # the attention and the linear layers are matrix products: the largest share, many nodes
+    assert ops["MatMul"]["nodes"] >= 20 and ops["MatMul"]["share"] == max(r["share"] for r in ops.values())
+    assert {"LayerNormalization", "TopK", "Softmax"} <= set(ops)
+    assert abs(sum(r["share"] for r in ops.values()) - 1.0) < 1e-9
+    assert all(r["ms"] > 0 for r in ops.values())
+    # no row gather is an Expand + GatherElements pair any more (features.gather)
+    assert ops.get("Expand", {"nodes": 0})["nodes"] < ops["Gather"]["nodes"]
+    assert "| MatMul |" in capsys.readouterr().out

@@ -22,6 +22,10 @@ equal candidates).
   the inputs' shapes (compiled once per shape). Needs ``pip install openvino`` (not a
   dependency of cegc_ros: docs/performance.md has the measurement that decided it).
 
+``--ops N`` instead profiles the engine's own session on those inputs with ONNX Runtime's
+profiler (N runs of every pair's inputs after one untimed run, this process, idle) and prints
+the kernel time by operator type: ms a call, share, nodes (docs/performance.md).
+
 Errors (an unknown runtime, one not installed): one line, exit code 1.
 """
 
@@ -185,6 +189,43 @@ def _median_of_rounds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def op_profile(path: str | Path, feeds: list[dict[str, np.ndarray]], runs: int
+               ) -> list[dict[str, Any]]:
+    """The engine's session options with ONNX Runtime's profiler on: every feed run once
+    untimed, then ``runs`` times; per operator type, kernel ms per network call (a pair's
+    feeds), share of the kernels' total and node count, the largest first."""
+    import tempfile
+
+    from cegc_ros.onnx_network import OUTPUTS, open_session, session_options
+
+    opts = session_options()
+    opts.enable_profiling = True
+    with tempfile.TemporaryDirectory() as tmp:
+        opts.profile_file_prefix = str(Path(tmp) / "ort")
+        session = open_session(path, opts)
+        for f in feeds:
+            session.run(list(OUTPUTS), f)
+        for _ in range(runs):
+            for f in feeds:
+                session.run(list(OUTPUTS), f)
+        events = json.loads(Path(session.end_profiling()).read_text())
+    # the untimed first runs end where the len(feeds)-th "model_run" event ends
+    model_runs = sorted((e["ts"] + e["dur"]) for e in events if e.get("name") == "model_run")
+    warm_from = model_runs[len(feeds) - 1] if len(model_runs) >= len(feeds) else 0
+    total: dict[str, float] = {}
+    nodes: dict[str, set] = {}
+    for e in events:
+        if (e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time")
+                and e.get("ts", 0) >= warm_from):
+            op = e.get("args", {}).get("op_name", "?")
+            total[op] = total.get(op, 0.0) + float(e["dur"])
+            nodes.setdefault(op, set()).add(e["name"])
+    whole = sum(total.values()) or 1.0
+    calls = runs * len(feeds)
+    return [{"op": op, "ms": us / 1000.0 / calls, "share": us / whole, "nodes": len(nodes[op])}
+            for op, us in sorted(total.items(), key=lambda kv: -kv[1])]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench_runtimes", description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=20000, help="input points per cloud")
@@ -195,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(".cache/bench"))
     ap.add_argument("--rounds", type=int, default=2, help="each runtime's worker runs this many times, in turn")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--ops", type=int, default=0, metavar="N",
+                    help="profile the engine's session by operator type over N runs instead")
     ap.add_argument("--worker", default="", help=argparse.SUPPRESS)
     ap.add_argument("--feeds", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -216,6 +259,17 @@ def main(argv: list[str] | None = None) -> int:
         if "onnxruntime" not in names:
             names.insert(0, "onnxruntime")          # the reference of the ratios
         net, feeds = capture_inputs(args.size, args.pairs, args.cache)
+        if args.ops > 0:
+            ops = op_profile(net.path, feeds, args.ops)
+            print("| operator | ms a call | share | nodes |\n|---|---|---|---|")
+            for r in ops:
+                print(f"| {r['op']} | {r['ms']:.2f} | {r['share']:.1%} | {r['nodes']} |")
+            print(f"\n{len(feeds)} pairs of {args.size} points, {args.ops} runs\ncommand: python -m "
+                  f"cegc_ros.tools.bench_runtimes {shlex.join(argv if argv is not None else sys.argv[1:])}")
+            if args.json is not None:
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                args.json.write_text(json.dumps({"ops": ops}, indent=1))
+            return 0
         feeds_file = save_feeds(net, feeds, args.cache / f"network_feeds_{args.size}.npz")
         rows = [measure(n, feeds_file, args.repeats, h) for _ in range(args.rounds) for h in hogs
                 for n in names]
