@@ -101,6 +101,17 @@ class EngineConfig:
         "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
         "geometric fitness (share of the network's source points that land near a target "
         "point); 0 ranks by the count alone, as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
+    explore_seeds: int = field(default=200, metadata=_meta(
+        "Seeds of the compatibility estimator drawn at random (seeded) besides its spectral "
+        "ones: at low overlap the spectral seeds gather on a wrong consistent cluster. Chosen "
+        "on synthetic validation pairs (docs/pipeline.md). See cegc_ros/estimator.py.", 0, 2000))
+    free_space: float = field(default=10.0, metadata=_meta(
+        "Weight of the free-space check in the hypotheses' verification: each one's count x "
+        "fitness is multiplied by exp(-free_space x the share of points it puts where the other "
+        "cloud's sensor saw through). Assumes each cloud is in its sensor's frame (the origin "
+        "is the viewpoint, as a sensor's PointCloud2 is); 0 for clouds in a map or world frame. "
+        "Chosen on synthetic validation pairs (docs/pipeline.md). See cegc_ros/visibility.py.",
+        0.0, 100.0))
     inlier_factor: float = field(default=2.0, metadata=_meta(
         "Inlier and compatibility distance of the estimator, in multiples of the target "
         "network points' median spacing.", 0.25, 20.0))

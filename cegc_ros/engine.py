@@ -300,9 +300,10 @@ class Registrar:
             m = matching.match(network, ps, pt, eng, self.device)
         with clock("estimate"):
             c = m.correspondences
-            compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses)
+            compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses,
+                                         explore_seeds=eng.explore_seeds, free_space=eng.free_space)
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
-                                     (src_m, tgt_m))
+                                     (src_m, tgt_m), (src, tgt))
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t
             valid, reason = est.valid, est.reason

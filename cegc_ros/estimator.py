@@ -11,7 +11,11 @@ the paper:
    ``S_ij = max(0, 1 - d_ij^2 / d_thr^2)``, zero diagonal.
 2. Seeds: the leading eigenvector of ``S`` (spectral matching) times the confidence ``w``,
    then non-maximum suppression in the source (a seed beats every correspondence within
-   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds.
+   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. Plus
+   ``explore_seeds`` drawn at random among the other correspondences (seeded by K): at low
+   overlap the spectral score gathers on the largest consistent cluster, often a wrong one
+   (floor on floor), and 59% of the failed low-overlap validation pairs had no inlier among
+   200 spectral seeds while a random draw of 200 holds ~3 (docs/pipeline.md).
 3. Second-order compatibility of a seed s with every j: ``SC2_sj = C_sj * (C C)_sj`` (how
    many correspondences both agree with), only for the seeds' rows.
 4. Consensus per seed: its ``k1`` most compatible correspondences (by ``SC2_sj * w_j``); their
@@ -27,6 +31,11 @@ the paper:
    target point. In a room, a wrong pose that lays floor on floor and one wall on another
    explains many correspondences but leaves much of the cloud in free space; the true pose
    leaves less. Not in SC2-PCR; chosen on synthetic validation pairs (docs/pipeline.md).
+   With ``free_space`` > 0 and the clouds in their sensors' frames (``visibility``: the engine
+   passes the bounded clouds), that score is multiplied by ``exp(-free_space x v)``, v the
+   share of points each pose puts where the other cloud's sensor saw through
+   (cegc_ros/visibility.py): the right low-overlap pose has few inliers and little fitness,
+   but it puts nothing in front of what the other sensor saw.
 6. Refinement: the best hypothesis is re-solved ``refine_iterations`` times by weighted SVD over
    its inliers, weights ``w_i / (1 + (r_i / inlier_distance)^2)`` (the paper's post-refinement,
    with the learned confidence as prior).
@@ -50,6 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .refine import fitnesses
+from .visibility import free_space_violations
 
 ESTIMATORS = ("compatibility", "svd")
 
@@ -70,6 +80,8 @@ class CompatibilityConfig:
     k2: int = 20
     refine_iterations: int = 10
     verify: int = 0                   # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
+    explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
+    free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
 
 
 @dataclass
@@ -241,7 +253,8 @@ def _residuals(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray) -
 
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
                            cfg: CompatibilityConfig | None = None,
-                           clouds: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+                           clouds: tuple[np.ndarray, np.ndarray] | None = None,
+                           visibility: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
     """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0.
     ``clouds``: the (Ns, 3) source and (Nt, 3) target point sets the correspondences were drawn
     from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR)."""
@@ -275,6 +288,11 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         none.reason = "no correspondence is compatible with any other"
         return none
     seeds = cand[np.argsort(-score[cand])[:n_seeds]]                       # (S,)
+    if cfg.explore_seeds > 0:
+        rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
+        if len(rest):
+            pick = np.random.default_rng(K).choice(len(rest), min(cfg.explore_seeds, len(rest)), replace=False)
+            seeds = np.concatenate([seeds, rest[np.sort(pick)]])
 
     # 3-4. second-order compatibility of the seeds' rows, consensus sets, local spectral weights.
     sc2 = second_order_rows(hard, seeds)                                   # (S, K) float32
@@ -306,7 +324,10 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
         _, first = np.unique(key, axis=0, return_index=True)
         top = first[np.argsort(-total[first])][:cfg.verify]
-        best = int(top[(total[top] * fitnesses(R[top], t[top], clouds[0], clouds[1], thr)).argmax()])
+        rank = total[top] * fitnesses(R[top], t[top], clouds[0], clouds[1], thr)
+        if cfg.free_space > 0 and visibility is not None:
+            rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
+        best = int(top[rank.argmax()])
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
     else:
@@ -350,10 +371,12 @@ def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distanc
 
 def estimate(name: str, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
              cfg: CompatibilityConfig | None = None,
-             clouds: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
-    """Dispatch by estimator name (``ESTIMATORS``); ``clouds`` only matter to ``compatibility``."""
+             clouds: tuple[np.ndarray, np.ndarray] | None = None,
+             visibility: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+    """Dispatch by estimator name (``ESTIMATORS``); ``clouds`` and ``visibility`` only matter
+    to ``compatibility``."""
     if name == "compatibility":
-        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds)
+        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility)
     if name == "svd":
         return estimate_svd(src, tgt, w, inlier_distance, cfg)
     raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")

@@ -1,0 +1,88 @@
+"""Free space: what a pose puts where the other cloud's sensor saw through.
+
+A cloud in its sensor's frame (the origin is the viewpoint, as a sensor's PointCloud2 is) says
+more than where its surfaces are: along each ray from the origin, space nearer than the first
+return is empty. A wrong pose that lays one cloud's floor on the other's usually puts the rest
+of that cloud (walls, furniture) into that seen-through space; the right pose does not. The
+verification of the estimator (cegc_ros/estimator.py) ranks its hypotheses by count x fitness x
+exp(-``engine.free_space`` x the share of violating points, both directions); chosen on the
+synthetic validation pairs (docs/pipeline.md).
+
+Range images: the directions from the origin binned by azimuth and elevation in
+:data:`BIN_DEG` degree cells, each cell holding the nearest range seen in it. A point violates
+free space when its cell was seen and its range is shorter than the cell's by more than
+max(:data:`MARGIN_M`, :data:`MARGIN_SHARE` x the cell's range) (noise, the cell's width and a
+handheld path's motion within a fused fragment stay inside that margin).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Angular size of a range-image cell (degrees).
+BIN_DEG = 2.0
+#: A point counts as in free space when nearer than the cell's range by more than the larger
+#: of these (metres; share of the cell's range).
+MARGIN_M = 0.1
+MARGIN_SHARE = 0.1
+#: Points of each cloud used (a seeded subsample of the bounded cloud).
+POINTS = 3000
+
+
+def _cells(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) -> (cell index (...,) int64, range (...,)) of each point seen from the origin."""
+    r = np.sqrt(np.einsum("...i,...i->...", points, points))
+    az = np.arctan2(points[..., 1], points[..., 0])
+    el = np.arcsin(np.clip(points[..., 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+    rows = int(np.ceil(np.pi / bin_rad)) + 1
+    ia = np.floor((az + np.pi) / bin_rad).astype(np.int64)
+    ie = np.floor((el + np.pi / 2) / bin_rad).astype(np.int64)
+    return ia * rows + ie, r
+
+
+@dataclass
+class RangeImage:
+    """The nearest range seen in each direction cell of one cloud, from its origin."""
+
+    nearest: np.ndarray         # (cells,) float64, inf where nothing was seen
+    bin_rad: float
+
+    @classmethod
+    def of(cls, points: np.ndarray, bin_deg: float = BIN_DEG) -> RangeImage:
+        """(N, 3) points in their sensor's frame -> their range image."""
+        b = np.radians(bin_deg)
+        cells = (int(np.ceil(2 * np.pi / b)) + 1) * (int(np.ceil(np.pi / b)) + 1)
+        key, r = _cells(np.asarray(points, np.float64), b)
+        nearest = np.full(cells, np.inf)
+        np.minimum.at(nearest, key, r)
+        return cls(nearest, b)
+
+    def violations(self, points: np.ndarray) -> np.ndarray:
+        """(..., N, 3) points in this image's frame -> (...) share of them in seen free space."""
+        key, r = _cells(points, self.bin_rad)
+        d = self.nearest[key]
+        with np.errstate(invalid="ignore"):        # inf - inf where nothing was seen: not counted
+            inside = r < d - np.maximum(MARGIN_M, MARGIN_SHARE * d)
+        return inside.mean(axis=-1)
+
+
+def subsample(points: np.ndarray, n: int = POINTS, seed: int = 0) -> np.ndarray:
+    """At most n of the (N, 3) points (a seeded draw), float64."""
+    pts = np.asarray(points, np.float64)
+    if len(pts) <= n:
+        return pts
+    return pts[np.sort(np.random.default_rng(seed).choice(len(pts), n, replace=False))]
+
+
+def free_space_violations(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray
+                          ) -> np.ndarray:
+    """H poses T_target_source (R (H, 3, 3), t (H, 3)), (Ns, 3) source and (Nt, 3) target
+    points, each in its sensor's frame -> (H,) the share of source points each pose puts in the
+    target's free space plus the share of target points the inverse pose puts in the source's."""
+    src = subsample(source)
+    tgt = subsample(target)
+    into_t = src[None] @ np.transpose(R, (0, 2, 1)) + t[:, None]              # (H, Ns, 3)
+    into_s = (tgt[None] - t[:, None]) @ R                                      # (H, Nt, 3): R^T (q - t)
+    return RangeImage.of(tgt).violations(into_t) + RangeImage.of(src).violations(into_s)
