@@ -31,11 +31,12 @@ MARGIN_SHARE = 0.1
 POINTS = 3000
 
 
-def _cells(points: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) -> (cell index (...,) int64, range (...,)) of each point seen from the origin."""
-    r = np.sqrt(np.einsum("...i,...i->...", points, points))
-    az = np.arctan2(points[..., 1], points[..., 0])
-    el = np.arcsin(np.clip(points[..., 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+def _cells(x: np.ndarray, y: np.ndarray, z: np.ndarray, bin_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates (...) each -> (cell index (...) int64, range (...)) of each point seen from
+    the origin."""
+    r = np.sqrt(x * x + y * y + z * z)
+    az = np.arctan2(y, x)
+    el = np.arcsin(np.clip(z / np.maximum(r, 1e-12), -1.0, 1.0))
     rows = int(np.ceil(np.pi / bin_rad)) + 1
     ia = np.floor((az + np.pi) / bin_rad).astype(np.int64)
     ie = np.floor((el + np.pi / 2) / bin_rad).astype(np.int64)
@@ -54,14 +55,19 @@ class RangeImage:
         """(N, 3) points in their sensor's frame -> their range image."""
         b = np.radians(bin_deg)
         cells = (int(np.ceil(2 * np.pi / b)) + 1) * (int(np.ceil(np.pi / b)) + 1)
-        key, r = _cells(np.asarray(points, np.float64), b)
+        p = np.asarray(points, np.float64)
+        key, r = _cells(p[:, 0], p[:, 1], p[:, 2], b)
         nearest = np.full(cells, np.inf)
         np.minimum.at(nearest, key, r)
         return cls(nearest, b)
 
     def violations(self, points: np.ndarray) -> np.ndarray:
         """(..., N, 3) points in this image's frame -> (...) share of them in seen free space."""
-        key, r = _cells(points, self.bin_rad)
+        return self.violations_of(points[..., 0], points[..., 1], points[..., 2])
+
+    def violations_of(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """:meth:`violations` of the points given by coordinate arrays (..., N) each."""
+        key, r = _cells(x, y, z, self.bin_rad)
         d = self.nearest[key]
         with np.errstate(invalid="ignore"):        # inf - inf where nothing was seen: not counted
             inside = r < d - np.maximum(MARGIN_M, MARGIN_SHARE * d)
@@ -83,6 +89,8 @@ def free_space_violations(R: np.ndarray, t: np.ndarray, source: np.ndarray, targ
     target's free space plus the share of target points the inverse pose puts in the source's."""
     src = subsample(source)
     tgt = subsample(target)
-    into_t = src[None] @ np.transpose(R, (0, 2, 1)) + t[:, None]              # (H, Ns, 3)
-    into_s = (tgt[None] - t[:, None]) @ R                                      # (H, Nt, 3): R^T (q - t)
-    return RangeImage.of(tgt).violations(into_t) + RangeImage.of(src).violations(into_s)
+    # coordinates along the rows, (H, 3, N): each pass runs over N contiguous values
+    into_t = R @ np.ascontiguousarray(src.T) + t[:, :, None]                   # (H, 3, Ns)
+    into_s = np.transpose(R, (0, 2, 1)) @ (tgt.T[None] - t[:, :, None])        # R^T (q - t), (H, 3, Nt)
+    return (RangeImage.of(tgt).violations_of(*into_t.transpose(1, 0, 2))
+            + RangeImage.of(src).violations_of(*into_s.transpose(1, 0, 2)))

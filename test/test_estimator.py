@@ -187,3 +187,16 @@ def test_the_faster_estimator_keeps_the_inlier_sets_of_the_direct_one(monkeypatc
             slow.append(estimate_compatibility(src, tgt, w, 0.05, cfg, clouds).inliers)
     assert all((a == b).all() for a, b in zip(fast, slow))
     assert sum(a.sum() for a in fast) > 0.05 * sum(len(a) for a in fast)
+
+
+def test_residuals_are_the_distances_of_every_moved_correspondence():
+    from scipy.spatial.transform import Rotation
+
+    from cegc_ros.estimator import _residuals
+    rng = np.random.default_rng(3)
+    src, tgt = rng.normal(size=(700, 3)), rng.normal(size=(700, 3))
+    R, t = Rotation.random(40, random_state=4).as_matrix(), rng.normal(size=(40, 3))
+    expected = np.linalg.norm(np.einsum("hij,kj->hki", R, src) + t[:, None] - tgt[None], axis=-1)
+    got = _residuals(R, t, src, tgt)
+    assert got.shape == (40, 700)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13)
