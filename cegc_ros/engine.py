@@ -301,7 +301,8 @@ class Registrar:
         with clock("estimate"):
             c = m.correspondences
             compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses,
-                                         explore_seeds=eng.explore_seeds, free_space=eng.free_space)
+                                         explore_seeds=eng.explore_seeds, free_space=eng.free_space,
+                                         sure_fitness=eng.sure_fitness)
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
                                      (src_m, tgt_m), (src, tgt))
             T = np.eye(4)

@@ -82,6 +82,7 @@ class CompatibilityConfig:
     verify: int = 0                   # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
+    sure_fitness: float = 1.01        # explore (and check free space) only below this fitness of the first choice
 
 
 @dataclass
@@ -256,6 +257,51 @@ def _residuals(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray) -
     return np.sqrt(diff.sum(1))
 
 
+def _hypotheses(hard: np.ndarray, seeds: np.ndarray, src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
+                thr: float, cfg: CompatibilityConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 3-4 for the seeds (S,): poses R (H, 3, 3), t (H, 3) and their residuals (H, K)
+    on every correspondence, H = S plus the second-stage solves."""
+    K = len(src)
+    sc2 = second_order_rows(hard, seeds)                                   # (S, K) float32
+    k1 = min(cfg.k1, K)
+    rank = sc2 * w[None].astype(np.float32)
+    rank[np.arange(len(seeds)), seeds] = np.inf                            # the seed is in its own set
+    sets = np.argpartition(-rank, k1 - 1, axis=1)[:, :k1]                  # (S, k1)
+    loc = hard[sets[:, :, None], sets[:, None, :]].astype(np.float32)      # (S, k1, k1)
+    loc_sc2 = loc * (loc @ loc)
+    lw = _leading_eigenvector(loc_sc2) * w[sets]                           # (S, k1)
+    lw[lw.sum(1) <= 1e-12] = 1.0
+    R, t = batched_kabsch(src[sets], tgt[sets], lw)
+    # second stage: the k2 best-fitting correspondences among the hypothesis' inliers.
+    res = _residuals(R, t, src, tgt)                                       # (S, K)
+    k2 = min(cfg.k2, K)
+    near2 = np.argpartition(res, k2 - 1, axis=1)[:, :k2]                   # (S, k2)
+    w2 = w[near2] * (np.take_along_axis(res, near2, axis=1) < thr)
+    ok2 = (w2 > 0).sum(1) >= 3
+    if ok2.any():
+        R2, t2 = batched_kabsch(src[near2[ok2]], tgt[near2[ok2]], w2[ok2])
+        R, t = np.concatenate([R, R2]), np.concatenate([t, t2])
+        res = np.concatenate([res, _residuals(R2, t2, src, tgt)])
+    return R, t, res
+
+
+def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
+            clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None
+            ) -> tuple[int, np.ndarray, float]:
+    """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
+    chosen one's fitness). ``visibility`` None: count x fitness alone."""
+    # distinct poses only (many seeds reach the same consensus set), the best-counted first
+    key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    top = first[np.argsort(-total[first])][:cfg.verify]
+    fit = fitnesses(R[top], t[top], clouds[0], clouds[1], thr)
+    rank = total[top] * fit
+    if cfg.free_space > 0 and visibility is not None:
+        rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
+    i = int(rank.argmax())
+    return int(top[i]), top, float(fit[i])
+
+
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
                            cfg: CompatibilityConfig | None = None,
                            clouds: tuple[np.ndarray, np.ndarray] | None = None,
@@ -293,50 +339,28 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         none.reason = "no correspondence is compatible with any other"
         return none
     seeds = cand[np.argsort(-score[cand])[:n_seeds]]                       # (S,)
-    if cfg.explore_seeds > 0:
-        rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
-        if len(rest):
-            pick = np.random.default_rng(K).choice(len(rest), min(cfg.explore_seeds, len(rest)), replace=False)
-            seeds = np.concatenate([seeds, rest[np.sort(pick)]])
-
-    # 3-4. second-order compatibility of the seeds' rows, consensus sets, local spectral weights.
-    sc2 = second_order_rows(hard, seeds)                                   # (S, K) float32
-    k1 = min(cfg.k1, K)
-    rank = sc2 * w[None].astype(np.float32)
-    rank[np.arange(len(seeds)), seeds] = np.inf                            # the seed is in its own set
-    sets = np.argpartition(-rank, k1 - 1, axis=1)[:, :k1]                  # (S, k1)
-    loc = hard[sets[:, :, None], sets[:, None, :]].astype(np.float32)      # (S, k1, k1)
-    loc_sc2 = loc * (loc @ loc)
-    lw = _leading_eigenvector(loc_sc2) * w[sets]                           # (S, k1)
-    lw[lw.sum(1) <= 1e-12] = 1.0
-    R, t = batched_kabsch(src[sets], tgt[sets], lw)
-    # second stage: the k2 best-fitting correspondences among the hypothesis' inliers.
-    res = _residuals(R, t, src, tgt)                                       # (S, K)
-    k2 = min(cfg.k2, K)
-    near2 = np.argpartition(res, k2 - 1, axis=1)[:, :k2]                   # (S, k2)
-    w2 = w[near2] * (np.take_along_axis(res, near2, axis=1) < thr)
-    ok2 = (w2 > 0).sum(1) >= 3
-    if ok2.any():
-        R2, t2 = batched_kabsch(src[near2[ok2]], tgt[near2[ok2]], w2[ok2])
-        R, t = np.concatenate([R, R2]), np.concatenate([t, t2])
-        res = np.concatenate([res, _residuals(R2, t2, src, tgt)])
+    R, t, res = _hypotheses(hard, seeds, src, tgt, w, thr, cfg)
 
     # 5. selection by the confidence-weighted truncated count.
     total = (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
     best = int(total.argmax())
+    hypotheses = np.zeros((0, 4, 4))
     if clouds is not None and cfg.verify > 0:
-        # distinct poses only (many seeds reach the same consensus set), the best-counted first
-        key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
-        _, first = np.unique(key, axis=0, return_index=True)
-        top = first[np.argsort(-total[first])][:cfg.verify]
-        rank = total[top] * fitnesses(R[top], t[top], clouds[0], clouds[1], thr)
-        if cfg.free_space > 0 and visibility is not None:
-            rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
-        best = int(top[rank.argmax()])
+        explore = cfg.explore_seeds > 0
+        best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility)
+        if explore and fit < cfg.sure_fitness:
+            # not sure: more seeds drawn at random among the rest, all hypotheses verified again
+            # with the free-space check
+            rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
+            if len(rest):
+                pick = np.random.default_rng(K).choice(len(rest), min(cfg.explore_seeds, len(rest)),
+                                                       replace=False)
+                R2, t2, res2 = _hypotheses(hard, rest[np.sort(pick)], src, tgt, w, thr, cfg)
+                R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
+                total = (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
+            best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
-    else:
-        hypotheses = np.zeros((0, 4, 4))
     Rb, tb, rb = R[best], t[best], res[best]
 
     # 6. refinement on the inliers with robust weights.
