@@ -11,11 +11,13 @@ the paper:
    ``S_ij = max(0, 1 - d_ij^2 / d_thr^2)``, zero diagonal.
 2. Seeds: the leading eigenvector of ``S`` (spectral matching) times the confidence ``w``,
    then non-maximum suppression in the source (a seed beats every correspondence within
-   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. Plus
-   ``explore_seeds`` drawn at random among the other correspondences (seeded by K): at low
-   overlap the spectral score gathers on the largest consistent cluster, often a wrong one
-   (floor on floor), and 59% of the failed low-overlap validation pairs had no inlier among
-   200 spectral seeds while a random draw of 200 holds ~3 (docs/pipeline.md).
+   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. When the choice of
+   step 5 from these has a fitness below ``sure_fitness``, a second pass adds
+   ``explore_seeds`` drawn at random among the other correspondences (seeded by K) and
+   verifies all hypotheses again, with the free-space check: at low overlap the spectral score
+   gathers on the largest consistent cluster, often a wrong one (floor on floor), and 59% of
+   the failed low-overlap validation pairs had no inlier among 200 spectral seeds while a
+   random draw of 200 holds ~3 (docs/pipeline.md).
 3. Second-order compatibility of a seed s with every j: ``SC2_sj = C_sj * (C C)_sj`` (how
    many correspondences both agree with), only for the seeds' rows.
 4. Consensus per seed: its ``k1`` most compatible correspondences (by ``SC2_sj * w_j``); their
@@ -31,8 +33,9 @@ the paper:
    target point. In a room, a wrong pose that lays floor on floor and one wall on another
    explains many correspondences but leaves much of the cloud in free space; the true pose
    leaves less. Not in SC2-PCR; chosen on synthetic validation pairs (docs/pipeline.md).
-   With ``free_space`` > 0 and the clouds in their sensors' frames (``visibility``: the engine
-   passes the bounded clouds), that score is multiplied by ``exp(-free_space x v)``, v the
+   With ``free_space`` > 0 (in the second pass; in the first when ``explore_seeds`` is 0) and
+   the clouds in their sensors' frames (``visibility``: the engine passes the bounded clouds),
+   that score is multiplied by ``exp(-free_space x v)``, v the
    share of points each pose puts where the other cloud's sensor saw through
    (cegc_ros/visibility.py): the right low-overlap pose has few inliers and little fitness,
    but it puts nothing in front of what the other sensor saw.
@@ -82,7 +85,7 @@ class CompatibilityConfig:
     verify: int = 0                   # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
-    sure_fitness: float = 1.01        # explore (and check free space) only below this fitness of the first choice
+    sure_fitness: float = 1.01        # second pass (exploring seeds, free space) below this fitness of the first choice
 
 
 @dataclass

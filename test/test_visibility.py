@@ -63,8 +63,9 @@ def test_a_pose_that_lays_floor_on_floor_is_caught_by_free_space():
     w = np.r_[np.full(60, 0.4), np.full(200, 0.6), rng.uniform(0, 0.3, 800)]
     thr = 0.2
 
-    def solve(explore: int, free: float) -> estimator.Estimate:
-        cfg = estimator.CompatibilityConfig(verify=50, explore_seeds=explore, free_space=free)
+    def solve(explore: int, free: float, sure: float = 1.01) -> estimator.Estimate:
+        cfg = estimator.CompatibilityConfig(verify=50, explore_seeds=explore, free_space=free,
+                                            sure_fitness=sure)
         return estimator.estimate_compatibility(cs, ct, w, thr, cfg, (src, tgt), (src, tgt))
 
     def error(e: estimator.Estimate, M: np.ndarray) -> tuple[float, float]:
@@ -81,6 +82,9 @@ def test_a_pose_that_lays_floor_on_floor_is_caught_by_free_space():
     v = visibility.free_space_violations(np.stack([T[:3, :3], T_wrong[:3, :3]]),
                                          np.stack([T[:3, 3], T_wrong[:3, 3]]), src, tgt)
     assert v[0] < 0.02 and v[1] > 0.15
+    # the second pass runs only below sure_fitness: the slide's fitness is ~0.44
+    assert error(solve(200, 10.0, sure=0.3), T_wrong)[1] < 0.05
+    assert error(solve(200, 10.0, sure=0.85), T)[1] < 0.05
     # the same answer twice: the exploring seeds are drawn from a fixed stream
     again = solve(200, 10.0)
     assert np.array_equal(again.R, checked.R) and np.array_equal(again.t, checked.t)
