@@ -311,7 +311,9 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                            visibility: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
     """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0.
     ``clouds``: the (Ns, 3) source and (Nt, 3) target point sets the correspondences were drawn
-    from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR)."""
+    from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR);
+    ``visibility``: the two clouds in their sensors' frames for its free-space check (None: no
+    check)."""
     cfg = cfg or CompatibilityConfig()
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
