@@ -288,6 +288,11 @@ def _hypotheses(hard: np.ndarray, seeds: np.ndarray, src: np.ndarray, tgt: np.nd
     return R, t, res
 
 
+def _counts(res: np.ndarray, w: np.ndarray, thr: float) -> np.ndarray:
+    """Step 5's confidence-weighted truncated count of each hypothesis: residuals (H, K) -> (H,)."""
+    return (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
+
+
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None
             ) -> tuple[int, np.ndarray, float]:
@@ -347,7 +352,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     R, t, res = _hypotheses(hard, seeds, src, tgt, w, thr, cfg)
 
     # 5. selection by the confidence-weighted truncated count.
-    total = (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
+    total = _counts(res, w, thr)
     best = int(total.argmax())
     hypotheses = np.zeros((0, 4, 4))
     if clouds is not None and cfg.verify > 0:
@@ -362,7 +367,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                                                        replace=False)
                 R2, t2, res2 = _hypotheses(hard, rest[np.sort(pick)], src, tgt, w, thr, cfg)
                 R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
-                total = (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
+                total = np.concatenate([total, _counts(res2, w, thr)])
             best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
