@@ -11,7 +11,11 @@ the paper:
    ``S_ij = max(0, 1 - d_ij^2 / d_thr^2)``, zero diagonal.
 2. Seeds: the leading eigenvector of ``S`` (spectral matching) times the confidence ``w``,
    then non-maximum suppression in the source (a seed beats every correspondence within
-   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. When the choice of
+   ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. With
+   ``sure_seeds`` > 0 and verification on, steps 3-5 first run on that many of the strongest
+   seeds alone, and on the rest only when that choice's fitness is below ``sure_fitness``: a
+   clean high-overlap pair is decided by its first few seeds, and a pair that is not sure gets
+   every seed as before (docs/pipeline.md). When the choice of
    step 5 from these has a fitness below ``sure_fitness``, a second pass adds
    ``explore_seeds`` drawn at random among the other correspondences (seeded by K) and
    verifies all hypotheses again, with the free-space check: at low overlap the spectral score
@@ -86,6 +90,7 @@ class CompatibilityConfig:
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
     sure_fitness: float = 1.01        # second pass (exploring seeds, free space) below this fitness of the first choice
+    sure_seeds: int = 0               # first try only this many of the strongest seeds; the rest when not sure (0: all)
 
 
 @dataclass
@@ -294,15 +299,19 @@ def _counts(res: np.ndarray, w: np.ndarray, thr: float) -> np.ndarray:
 
 
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
-            clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None
-            ) -> tuple[int, np.ndarray, float]:
+            clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
+            known: dict[int, float]) -> tuple[int, np.ndarray, float]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
-    chosen one's fitness). ``visibility`` None: count x fitness alone."""
+    chosen one's fitness). ``visibility`` None: count x fitness alone. ``known``: fitnesses of
+    hypotheses (by index) an earlier call measured; this call's are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
     key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
     top = first[np.argsort(-total[first])][:cfg.verify]
-    fit = fitnesses(R[top], t[top], clouds[0], clouds[1], thr)
+    new = np.array([i for i in top if int(i) not in known], dtype=np.int64)
+    if len(new):
+        known.update(zip(new.tolist(), fitnesses(R[new], t[new], clouds[0], clouds[1], thr).tolist()))
+    fit = np.array([known[int(i)] for i in top])
     rank = total[top] * fit
     if cfg.free_space > 0 and visibility is not None:
         rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
@@ -349,15 +358,26 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         none.reason = "no correspondence is compatible with any other"
         return none
     seeds = cand[np.argsort(-score[cand])[:n_seeds]]                       # (S,)
-    R, t, res = _hypotheses(hard, seeds, src, tgt, w, thr, cfg)
+    verifying = clouds is not None and cfg.verify > 0
+    tried = len(seeds)
+    if verifying and 0 < cfg.sure_seeds < len(seeds):
+        tried = cfg.sure_seeds
+    R, t, res = _hypotheses(hard, seeds[:tried], src, tgt, w, thr, cfg)
 
     # 5. selection by the confidence-weighted truncated count.
     total = _counts(res, w, thr)
     best = int(total.argmax())
     hypotheses = np.zeros((0, 4, 4))
-    if clouds is not None and cfg.verify > 0:
+    if verifying:
         explore = cfg.explore_seeds > 0
-        best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility)
+        known: dict[int, float] = {}
+        best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
+        if tried < len(seeds) and fit < cfg.sure_fitness:
+            # the strongest seeds left the pair unsure: the rest of the spectral seeds
+            R2, t2, res2 = _hypotheses(hard, seeds[tried:], src, tgt, w, thr, cfg)
+            R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
+            total = np.concatenate([total, _counts(res2, w, thr)])
+            best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
         if explore and fit < cfg.sure_fitness:
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
             # with the free-space check
@@ -368,7 +388,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                 R2, t2, res2 = _hypotheses(hard, rest[np.sort(pick)], src, tgt, w, thr, cfg)
                 R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
                 total = np.concatenate([total, _counts(res2, w, thr)])
-            best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility)
+            best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility, known)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
     Rb, tb, rb = R[best], t[best], res[best]

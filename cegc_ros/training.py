@@ -453,10 +453,13 @@ class Trainer:
         (self.out / "config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
         log_path = self.out / "metrics.csv"
         fields = ["step", "elapsed_min", "points", "max_angle", "min_overlap", "loss", "l_overlap", "l_pose",
-                  "l_corr", "l_conf", "l_inlier", "l_desc", "l_row", "match_acc", "cand_recall",
+                  "l_corr", "l_conf", "l_inlier", "l_desc", "l_row", "l_rank", "match_acc", "cand_recall",
                   "top100_precision", "inlier_frac", "overlap_acc", "val_recall", "val_rre_median",
                   "val_rre_mean", "val_match_acc", "val_top100_precision"]
         new_log = not log_path.exists()
+        if not new_log:     # a resumed run appends under the columns its log was started with
+            with open(log_path, newline="", encoding="utf-8") as f:
+                fields = next(csv.reader(f), None) or fields
         logf = open(log_path, "a", newline="", encoding="utf-8")
         writer = csv.DictWriter(logf, fieldnames=fields, extrasaction="ignore")
         if new_log:

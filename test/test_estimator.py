@@ -200,3 +200,66 @@ def test_residuals_are_the_distances_of_every_moved_correspondence():
     got = _residuals(R, t, src, tgt)
     assert got.shape == (40, 700)
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13)
+
+
+def _seeds_built(monkeypatch) -> list[int]:
+    """Record how many seeds each call of the estimator's hypothesis builder gets."""
+    import cegc_ros.estimator as est_mod
+    calls: list[int] = []
+    inner = est_mod._hypotheses
+
+    def counting(hard, seeds, *args, **kwargs):
+        calls.append(len(seeds))
+        return inner(hard, seeds, *args, **kwargs)
+
+    monkeypatch.setattr(est_mod, "_hypotheses", counting)
+    return calls
+
+
+def test_sure_seeds_decide_a_clean_pair_from_the_strongest_seeds_alone(monkeypatch):
+    """A cloud seen twice (every correspondence's source point lands on the target cloud, 60%
+    of the correspondences true): the 16 strongest seeds already give a pose whose fitness is
+    above sure_fitness, so the other seeds are never built, and the pose and inliers are those
+    of building all 200 at once."""
+    rng = np.random.default_rng(3)
+    cloud = rng.uniform(-2, 2, (1500, 3))
+    R = Rotation.from_euler("xyz", [15, -5, 40], degrees=True).as_matrix()
+    t = np.array([0.4, -0.2, 0.3])
+    target = cloud @ R.T + t
+    src = cloud.copy()
+    tgt = target + rng.normal(0, 0.005, target.shape)
+    wrong = rng.choice(1500, 600, replace=False)
+    tgt[wrong] = target[rng.permutation(wrong)]
+    w = rng.uniform(0.2, 1.0, 1500)
+    calls = _seeds_built(monkeypatch)
+    cfg = CompatibilityConfig(verify=50, sure_fitness=0.85)
+    full = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target))
+    assert calls == [200]
+    calls.clear()
+    quick = estimate_compatibility(src, tgt, w, 0.05, CompatibilityConfig(verify=50, sure_fitness=0.85, sure_seeds=16),
+                                   clouds=(cloud, target))
+    assert calls == [16]
+    assert rotation_error_deg(R, quick.R) < 0.1 and np.linalg.norm(quick.t - t) < 0.01
+    np.testing.assert_allclose(quick.R, full.R, atol=1e-9)
+    np.testing.assert_array_equal(quick.inliers, full.inliers)
+
+
+def test_sure_seeds_build_every_seed_when_the_first_choice_is_not_sure(monkeypatch):
+    """Half of the source cloud has no counterpart (fitness of the true pose ~0.5 < 0.85): the
+    16 strongest seeds do not decide, the other 184 are built after them, and the pose is the one
+    of building all 200 at once."""
+    src, tgt, R, t, truth = correspondences(1500, 0.1, seed=4)
+    cloud_s = src
+    cloud_t = np.concatenate([(src @ R.T + t)[:750], np.random.default_rng(4).uniform(-2, 2, (750, 3))])
+    calls = _seeds_built(monkeypatch)
+    full = estimate_compatibility(src, tgt, np.ones(1500), 0.05, CompatibilityConfig(verify=50),
+                                  clouds=(cloud_s, cloud_t))
+    assert calls == [200]
+    calls.clear()
+    split = estimate_compatibility(src, tgt, np.ones(1500), 0.05, CompatibilityConfig(verify=50, sure_seeds=16,
+                                                                                        sure_fitness=0.85),
+                                   clouds=(cloud_s, cloud_t))
+    assert calls == [16, 184]
+    assert rotation_error_deg(R, split.R) < 0.5
+    np.testing.assert_allclose(split.R, full.R, atol=1e-9)
+    np.testing.assert_array_equal(split.inliers, full.inliers)

@@ -84,9 +84,21 @@ def test_tiny_run_logs_validates_checkpoints_and_resumes(tmp_path):
     assert again.step == 4
     for k, v in again.model.state_dict().items():
         assert torch.equal(v, after[k])
+    # a log begun under other columns (an older version's, without l_rank) keeps them: the rows
+    # appended on resume line up under its header
+    log = tmp_path / "run" / "metrics.csv"
+    with open(log) as fh:
+        old = list(csv.DictReader(fh))
+    cols = [c for c in old[0] if c != "l_rank"]
+    with open(log, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(old)
     again.run()
-    with open(tmp_path / "run" / "metrics.csv") as fh:
-        assert [int(r["step"]) for r in csv.DictReader(fh)] == [1, 2, 3, 4, 5, 6]
+    with open(log) as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5, 6]
+    assert all(None not in r and np.isfinite(float(r["loss"])) for r in rows)
 
 
 def _exact_shared(batch: dict[str, torch.Tensor]) -> float:
@@ -351,3 +363,61 @@ def test_a_warm_start_into_fewer_attention_layers_keeps_the_first_ones(tmp_path)
     with pytest.raises(RuntimeError, match="size mismatch|Unexpected"):
         Trainer(cfg, resume=tmp_path / "wide.pt", device="cpu", fragments=frags, val_fragments=frags,
                 progress=False)
+
+
+def test_rank_loss_asks_each_pair_to_rank_its_true_candidates_above_its_hardest_false_ones():
+    """The ranking term: near 0 when every true candidate outranks the pair's hard false ones,
+    large when one false candidate outranks them; a pair with 1 true candidate weighs as much
+    as one with many (the batch-pooled BCE does not), and a pair with none adds nothing."""
+    from cegc_ros.model.losses import rank_loss
+    K = 100
+    inl = torch.zeros(2, K)
+    inl[0, :50] = 1.0                      # an easy, high-overlap pair: half true
+    inl[1, 0] = 1.0                        # a low-overlap pair: one true candidate
+    good = torch.where(inl > 0, torch.tensor(0.0), torch.tensor(-10.0))
+    assert float(rank_loss(good, inl, 8)) < 1e-3
+    bad = good.clone()
+    bad[1, 5] = 5.0                        # one false candidate of the hard pair on top
+    # pair 1's loss: mean over its 8 hard negatives, one of them 5 above the true one
+    expected = 0.5 * (float(torch.nn.functional.softplus(torch.tensor(5.0))) / 8)
+    assert float(rank_loss(bad, inl, 8)) == pytest.approx(expected, rel=1e-3)
+    # the same false candidate on top of the easy pair costs that pair the same mean
+    easy = good.clone()
+    easy[0, 60] = 5.0
+    assert float(rank_loss(easy, inl, 8)) == pytest.approx(expected, rel=1e-3)
+    none = torch.zeros(1, K)
+    assert float(rank_loss(torch.zeros(1, K), none, 8)) == 0.0
+    # gradients reach the scores: the false candidate on top is pushed down, the true one up
+    x = bad.clone().requires_grad_(True)
+    rank_loss(x, inl, 8).backward()
+    assert x.grad[1, 5] > 0 > x.grad[1, 0]
+
+
+def test_candidate_loss_with_the_ranking_term_prefers_the_right_order():
+    """candidate_loss with rank > 0 logs l_rank, and a score order with the true partner on
+    top scores a lower l_rank than the reversed order."""
+    from cegc_ros.model.cegc import CandidateOutput
+    from cegc_ros.model.losses import CandidateLossConfig, candidate_loss
+    g = torch.Generator().manual_seed(0)
+    N = 64
+    src = torch.rand(1, N, 3, generator=g)
+    R, t = torch.eye(3)[None], torch.tensor([[0.1, 0.0, 0.0]])
+    tgt = src + t[:, None]
+    wrong = torch.cdist(src, src)[0].argmax(dim=1)
+    cand = torch.stack([torch.arange(N), wrong], dim=-1)[None]
+    feats = torch.randn(1, N, 8, generator=g)
+    cfg = CandidateLossConfig(rank=1.0, rank_negatives=16)
+
+    def parts(scores: torch.Tensor) -> dict[str, float]:
+        out = CandidateOutput(torch.zeros(1, N), torch.zeros(1, N), cand, scores, torch.zeros(1, N), feats, feats)
+        return candidate_loss(out, src, tgt, R, t, cfg)[1]
+
+    right = parts(torch.tensor([4.0, -4.0]).expand(1, N, 2).contiguous())
+    flipped = parts(torch.tensor([-4.0, 4.0]).expand(1, N, 2).contiguous())
+    # log w = logsigmoid(+-4): 4 apart, softplus(-4) = 0.018 against softplus(4) = 4.018
+    assert right["l_rank"] == pytest.approx(0.0181, abs=1e-3)
+    assert flipped["l_rank"] == pytest.approx(4.018, abs=1e-2)
+    off = candidate_loss(CandidateOutput(torch.zeros(1, N), torch.zeros(1, N), cand,
+                                         torch.zeros(1, N, 2), torch.zeros(1, N), feats, feats),
+                         src, tgt, R, t, CandidateLossConfig())[1]
+    assert off["l_rank"] == 0.0

@@ -99,6 +99,8 @@ class CandidateLossConfig:
     descriptor: float = 1.0      # InfoNCE pulling true partners together in feature space
     pose: float = 0.5            # the paper's L_R on the confidence-weighted Kabsch over candidates
     row: float = 0.2             # BCE of w_i against "one of row i's candidates is a true match"
+    rank: float = 0.0            # within-pair ranking of the engine's confidences (rank_loss)
+    rank_negatives: int = 256    # the pair's most confident false candidates each true one must beat
     label_factor: float = 2.0    # match threshold = factor x median NN spacing of the target
     nce_temperature: float = 0.1
 
@@ -145,7 +147,11 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     l_r = ((R_gt.transpose(1, 2) @ R - eye) ** 2).sum(dim=(1, 2)).mean() + ((t_gt - t) ** 2).sum(-1).mean()
     row_lab = inl.max(dim=-1).values
     l_w = F.binary_cross_entropy_with_logits(out.conf_logits.float(), row_lab)
-    total = cfg.overlap * l_o + cfg.inlier * l_i + cfg.descriptor * l_d + cfg.pose * l_r + cfg.row * l_w
+    log_w = F.logsigmoid(out.scores.float()) + F.logsigmoid(out.src_overlap_logits.float())[:, :, None]
+    l_k = rank_loss(log_w.reshape(B, N * k), inl.reshape(B, N * k), cfg.rank_negatives) \
+        if cfg.rank > 0 else torch.zeros((), device=src.device)
+    total = cfg.overlap * l_o + cfg.inlier * l_i + cfg.descriptor * l_d + cfg.pose * l_r + cfg.row * l_w \
+        + cfg.rank * l_k
     with torch.no_grad():
         best = out.scores.argmax(dim=-1, keepdim=True)
         hit = inl.gather(2, best).squeeze(-1)
@@ -155,8 +161,35 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     parts = {
         "loss": float(total.detach()), "l_overlap": float(l_o.detach()), "l_inlier": float(l_i.detach()),
         "l_desc": float(l_d.detach()), "l_pose": float(l_r.detach()), "l_row": float(l_w.detach()),
+        "l_rank": float(l_k.detach()),
         "inlier_frac": float(inl.mean()), "cand_recall": float(learned_recall),
         "match_acc": float((hit * has).sum() / has.sum().clamp_min(1.0)), "top100_precision": float(top_prec),
         "overlap_acc": float(((out.src_overlap_logits > 0).float() == lab_x).float().mean()),
     }
     return total, parts
+
+
+def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:
+    """Within-pair ranking of the engine's confidences: log_w (B, K) = log of the confidence
+    the engine ranks correspondences by, inl (B, K) in {0, 1} the ground-truth labels.
+
+    Each true correspondence of a pair must outrank that pair's ``negatives`` most confident
+    false ones: mean over (true, hard false) of softplus(log_w_false - log_w_true), each pair
+    weighted alike (pairs without a true candidate add nothing). Why: the balanced inlier BCE
+    above pools a batch's classes, so a low-overlap pair's 1-2% true candidates weigh little,
+    and a classifier can be calibrated over the batch while ranking a hard pair's few true
+    matches at chance, which is what the estimator's seeds then see (docs/pipeline.md). The
+    estimator needs only the head of each pair's ranking right, hence the hard negatives.
+    """
+    B, K = log_w.shape
+    h = min(negatives, K)
+    with torch.no_grad():
+        masked = log_w.detach().masked_fill(inl > 0, float("-inf"))
+        top = masked.topk(h, dim=-1)
+        valid = torch.isfinite(top.values).float()                     # (B, h): fewer false ones
+    hard = log_w.gather(1, top.indices)                                # (B, h)
+    margin = F.softplus(hard[:, None, :] - log_w[:, :, None])          # (B, K, h)
+    pair_w = inl[:, :, None] * valid[:, None, :]
+    per_pair = (margin * pair_w).sum(dim=(1, 2)) / pair_w.sum(dim=(1, 2)).clamp_min(1.0)
+    has = (pair_w.sum(dim=(1, 2)) > 0).float()
+    return (per_pair * has).sum() / has.sum().clamp_min(1.0)
