@@ -99,6 +99,32 @@ def test_evaluate_counts_successes_by_overlap():
     assert [row["hypotheses"] for row in rows] == [2, 2, 2]
 
 
+def test_ranking_counts_the_true_correspondences_and_how_the_confidences_order_them():
+    """Six correspondences, three true under T (a 1 m shift): confidences that put the true ones
+    first give AUC 1, the reverse 0; the top-k count sees the order; a peer's result (no
+    correspondences) gives nothing."""
+    import numpy as np
+    from types import SimpleNamespace
+    T = np.eye(4)
+    T[0, 3] = 1.0
+    src = np.arange(18, dtype=np.float32).reshape(6, 3)
+    tgt = src.copy()
+    tgt[:3, 0] += 1.0                                         # rows 0-2 true under T
+    tgt[3:] += 5.0                                            # rows 3-5 false
+    corr = np.stack([np.arange(6), np.arange(6)], axis=1)
+
+    def res(w):
+        return SimpleNamespace(correspondences=corr, source_points=src, target_points=tgt,
+                               weights=np.array(w, np.float32), inlier_distance=0.1)
+    good = select_weights.ranking(res([0.9, 0.8, 0.7, 0.3, 0.2, 0.1]), T, top=3)
+    assert good == {"true_correspondences": 3, "true_in_top3": 3, "ranking_auc": 1.0}
+    bad = select_weights.ranking(res([0.1, 0.2, 0.3, 0.7, 0.8, 0.9]), T, top=3)
+    assert bad["true_in_top3"] == 0 and bad["ranking_auc"] == 0.0
+    ties = select_weights.ranking(res([0.5] * 6), T, top=3)
+    assert ties["ranking_auc"] == 0.5
+    assert select_weights.ranking(SimpleNamespace(), T) == {}
+
+
 def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):
     import csv
 
@@ -109,6 +135,9 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2 and {r["run"] for r in rows} == {str(default_weights())}
     assert all(0.0 <= float(r["fitness"]) <= 1.0 and float(r["total_s"]) > 0 for r in rows)
+    # the learned ranking of each pair's correspondences against the ground truth
+    assert all(int(r["true_in_top100"]) <= min(100, int(r["true_correspondences"])) for r in rows)
+    assert all(r["ranking_auc"] == "nan" or 0.0 <= float(r["ranking_auc"]) <= 1.0 for r in rows)
     assert recall == sum(r["correct"] == "True" and r["valid"] == "True" for r in rows) / 2
     # correct means within 15 deg and 0.3 m, and the dumped errors say so
     assert all((r["correct"] == "True") == (float(r["rotation_error_deg"]) < 15.0

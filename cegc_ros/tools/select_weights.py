@@ -60,8 +60,32 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, Any]:
                          "hypotheses": len(hyp), "first_right_hypothesis": right_ones[0] if right_ones else -1,
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
+                         **ranking(res, T),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
     return summary(np.array(ok, bool), np.array(low, bool), secs, missed)
+
+
+def ranking(res: Any, T: np.ndarray, top: int = 100) -> dict[str, float]:
+    """How the engine's confidences rank its correspondences against the ground truth T (4, 4):
+    the true ones (residual under T below the result's inlier distance), how many of them are
+    among the ``top`` most confident, and the ranking's AUC (the chance that a true
+    correspondence is more confident than a false one; 0.5: no better than chance; NaN without
+    both kinds). Empty for a peer's result, which has no weighted correspondences."""
+    c = getattr(res, "correspondences", None)
+    if c is None or not len(c):
+        return {}
+    src = res.source_points[c[:, 0]].astype(np.float64)
+    tgt = res.target_points[c[:, 1]].astype(np.float64)
+    true = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - tgt, axis=1) < res.inlier_distance
+    w = np.asarray(res.weights, np.float64)
+    order = np.argsort(-w, kind="stable")
+    P, N = int(true.sum()), int((~true).sum())
+    auc = float("nan")
+    if P and N:
+        from scipy.stats import rankdata
+        r = rankdata(w)                                                  # ties share their mean rank
+        auc = float((r[true].sum() - P * (P + 1) / 2) / (P * N))
+    return {"true_correspondences": P, f"true_in_top{top}": int(true[order[:top]].sum()), "ranking_auc": auc}
 
 
 def summary(ok: np.ndarray, low: np.ndarray, secs: list[float], missed: list[bool]) -> dict[str, Any]:
