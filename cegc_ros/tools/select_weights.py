@@ -13,6 +13,9 @@ chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preproces
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 ``--seeds 0,1`` runs each checkpoint at each sampling seed and pools its recall; from the second
 method on a line says how many evaluations it won and lost against the first, with a sign test.
+``--dump FILE`` writes one row per evaluation, with how the learned confidences rank that pair's
+correspondences against the ground truth (:func:`ranking`: true ones, true ones among the 100
+most confident, AUC), the learned part's quality apart from the estimator's.
 """
 
 from __future__ import annotations
@@ -151,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the pairs of this sensor model (default kinect; a LiDAR cache: "
                          "cegc-make-pairs --split val --lidar-fraction 1 ...)")
     ap.add_argument("--dump", type=Path, default=None,
-                    help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, stage seconds)")
+                    help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, the "
+                         "confidences' ranking of the true correspondences, stage seconds)")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
