@@ -116,7 +116,9 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
       learned candidates (nearest in feature space) contain it;
     - HOCE overlap BCE and the pose loss of the paper, the pose from a weighted Kabsch over all
       candidate pairs with the engine's weights (differentiable, so the weights learn to
-      favour pairs that pull the pose right).
+      favour pairs that pull the pose right);
+    - with ``rank`` > 0, :func:`rank_loss` on the engine's confidences: within each pair, every
+      true candidate above that pair's most confident false ones.
     All inputs in the normalised frame: src (B, N, 3), tgt (B, M, 3), R_gt (B, 3, 3), t_gt (B, 3).
     """
     from .svd import weighted_kabsch
