@@ -298,6 +298,17 @@ def _counts(res: np.ndarray, w: np.ndarray, thr: float) -> np.ndarray:
     return (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
 
 
+def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], hard: np.ndarray,
+                     seeds: np.ndarray, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, thr: float,
+                     cfg: CompatibilityConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The hypotheses so far, (R, t, residuals, counts), with those of more seeds appended (the
+    earlier ones keep their indices)."""
+    R, t, res, total = have
+    R2, t2, res2 = _hypotheses(hard, seeds, src, tgt, w, thr, cfg)
+    return (np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2]),
+            np.concatenate([total, _counts(res2, w, thr)]))
+
+
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
             known: dict[int, float]) -> tuple[int, np.ndarray, float]:
@@ -374,9 +385,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
         if tried < len(seeds) and fit < cfg.sure_fitness:
             # the strongest seeds left the pair unsure: the rest of the spectral seeds
-            R2, t2, res2 = _hypotheses(hard, seeds[tried:], src, tgt, w, thr, cfg)
-            R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
-            total = np.concatenate([total, _counts(res2, w, thr)])
+            R, t, res, total = _more_hypotheses((R, t, res, total), hard, seeds[tried:], src, tgt, w, thr, cfg)
             best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
         if explore and fit < cfg.sure_fitness:
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
@@ -385,9 +394,8 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
             if len(rest):
                 pick = np.random.default_rng(K).choice(len(rest), min(cfg.explore_seeds, len(rest)),
                                                        replace=False)
-                R2, t2, res2 = _hypotheses(hard, rest[np.sort(pick)], src, tgt, w, thr, cfg)
-                R, t, res = np.concatenate([R, R2]), np.concatenate([t, t2]), np.concatenate([res, res2])
-                total = np.concatenate([total, _counts(res2, w, thr)])
+                R, t, res, total = _more_hypotheses((R, t, res, total), hard, rest[np.sort(pick)], src, tgt, w,
+                                                    thr, cfg)
             best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility, known)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
