@@ -180,7 +180,7 @@ def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:
     weighted alike (pairs without a true candidate add nothing). Why: the balanced inlier BCE
     above pools a batch's classes, so a low-overlap pair's 1-2% true candidates weigh little,
     and a classifier can be calibrated over the batch while ranking a hard pair's few true
-    matches at chance, which is what the estimator's seeds then see (docs/pipeline.md). The
+    matches little better than chance, which is what the estimator's seeds then see (docs/pipeline.md). The
     estimator needs only the head of each pair's ranking right, hence the hard negatives.
     """
     B, K = log_w.shape
