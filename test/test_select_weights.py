@@ -125,6 +125,33 @@ def test_ranking_counts_the_true_correspondences_and_how_the_confidences_order_t
     assert select_weights.ranking(SimpleNamespace(), T) == {}
 
 
+def test_overlap_ranking_measures_how_hoce_finds_the_overlap():
+    """Ten source points, four of them over the target under T: confidences that put those four
+    first give AUC 1 and keep all four in the 40% most confident; reversed, AUC 0 and none kept.
+    The target side is measured the same way through T's inverse."""
+    import numpy as np
+    from types import SimpleNamespace
+    T = np.eye(4)
+    T[1, 3] = -2.0
+    src = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)].astype(np.float32)
+    target = np.c_[np.arange(4.0), np.full(4, -2.0), np.zeros(4)]      # under src[:4] moved by T
+    source = src.astype(np.float64)
+
+    def res(w_src):
+        return SimpleNamespace(source_points=src, target_points=target.astype(np.float32),
+                               source_overlap=np.array(w_src, np.float32),
+                               target_overlap=np.full(4, 0.5, np.float32), inlier_distance=0.1)
+    good = select_weights.overlap_ranking(res([0.9] * 4 + [0.1] * 6), source, target, T)
+    assert good["source_overlap_share"] == 0.4 and good["source_overlap_auc"] == 1.0
+    assert good["source_overlap_kept"] == 1.0
+    # every target point lies over the source: one kind only, so no AUC; the 40% most confident hold 2 of 4
+    assert good["target_overlap_share"] == 1.0 and np.isnan(good["target_overlap_auc"])
+    assert good["target_overlap_kept"] == 0.5
+    bad = select_weights.overlap_ranking(res([0.1] * 4 + [0.9] * 6), source, target, T)
+    assert bad["source_overlap_auc"] == 0.0 and bad["source_overlap_kept"] == 0.0
+    assert select_weights.overlap_ranking(SimpleNamespace(), source, target, T) == {}
+
+
 def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):
     import csv
 
@@ -138,6 +165,9 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
     # the learned ranking of each pair's correspondences against the ground truth
     assert all(int(r["true_in_top100"]) <= min(100, int(r["true_correspondences"])) for r in rows)
     assert all(r["ranking_auc"] == "nan" or 0.0 <= float(r["ranking_auc"]) <= 1.0 for r in rows)
+    # and how HOCE's overlap confidences find each cloud's overlap
+    assert all(0.0 < float(r["source_overlap_share"]) <= 1.0 and 0.0 <= float(r["target_overlap_kept"]) <= 1.0
+               for r in rows)
     assert recall == sum(r["correct"] == "True" and r["valid"] == "True" for r in rows) / 2
     # correct means within 15 deg and 0.3 m, and the dumped errors say so
     assert all((r["correct"] == "True") == (float(r["rotation_error_deg"]) < 15.0

@@ -63,7 +63,7 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, Any]:
                          "hypotheses": len(hyp), "first_right_hypothesis": right_ones[0] if right_ones else -1,
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
-                         **ranking(res, T),
+                         **ranking(res, T), **overlap_ranking(res, p.source, p.target, T),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
     return summary(np.array(ok, bool), np.array(low, bool), secs, missed)
 
@@ -82,13 +82,45 @@ def ranking(res: Any, T: np.ndarray, top: int = 100) -> dict[str, float]:
     true = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - tgt, axis=1) < res.inlier_distance
     w = np.asarray(res.weights, np.float64)
     order = np.argsort(-w, kind="stable")
+    return {"true_correspondences": int(true.sum()), f"true_in_top{top}": int(true[order[:top]].sum()),
+            "ranking_auc": _auc(w, true)}
+
+
+def _auc(scores: np.ndarray, true: np.ndarray) -> float:
+    """The chance that a true item scores above a false one (ties count half); NaN without both."""
     P, N = int(true.sum()), int((~true).sum())
-    auc = float("nan")
-    if P and N:
-        from scipy.stats import rankdata
-        r = rankdata(w)                                                  # ties share their mean rank
-        auc = float((r[true].sum() - P * (P + 1) / 2) / (P * N))
-    return {"true_correspondences": P, f"true_in_top{top}": int(true[order[:top]].sum()), "ranking_auc": auc}
+    if not (P and N):
+        return float("nan")
+    from scipy.stats import rankdata
+    r = rankdata(scores)                                                 # ties share their mean rank
+    return float((r[true].sum() - P * (P + 1) / 2) / (P * N))
+
+
+def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndarray,
+                    keep: float = 0.4) -> dict[str, float]:
+    """How well the HOCE overlap confidences find the overlap, per cloud ("source_", "target_"):
+    ``overlap_share`` (the share of the network's points that lie in the overlap: within the
+    result's inlier distance of the other full cloud under the ground truth T (4, 4)),
+    ``overlap_auc`` (the chance that an overlap point is more confident than another), and
+    ``overlap_kept`` (the share of the overlap points among the ``keep`` most confident
+    fraction of the points: what a second pass focused on the predicted overlap would keep).
+    source, target: the pair's full (N, 3), (M, 3) clouds in metres. Empty for a peer's result."""
+    if getattr(res, "source_overlap", None) is None or not len(res.source_overlap):
+        return {}
+    from scipy.spatial import cKDTree
+    out: dict[str, float] = {}
+    for side, pts, conf, other, M in (("source", res.source_points, res.source_overlap, target, T),
+                                      ("target", res.target_points, res.target_overlap, source,
+                                       np.linalg.inv(T))):
+        moved = np.asarray(pts, np.float64) @ M[:3, :3].T + M[:3, 3]
+        d, _ = cKDTree(np.asarray(other, np.float64)).query(moved)
+        true = d < res.inlier_distance
+        conf = np.asarray(conf, np.float64)
+        top = np.argsort(-conf, kind="stable")[:max(1, int(round(keep * len(conf))))]
+        out[f"{side}_overlap_share"] = float(true.mean())
+        out[f"{side}_overlap_auc"] = _auc(conf, true)
+        out[f"{side}_overlap_kept"] = float(true[top].sum() / true.sum()) if true.any() else float("nan")
+    return out
 
 
 def summary(ok: np.ndarray, low: np.ndarray, secs: list[float], missed: list[bool]) -> dict[str, Any]:
@@ -155,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                          "cegc-make-pairs --split val --lidar-fraction 1 ...)")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, the "
-                         "confidences' ranking of the true correspondences, stage seconds)")
+                         "confidences' ranking of the true correspondences, how HOCE finds the overlap, "
+                         "stage seconds)")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCache, PairCacheError
