@@ -20,6 +20,9 @@ pytest.importorskip("onnxruntime")
 
 #: Stated tolerance of the parity: float32 kernels fused differently (logits are O(1-10)).
 LOGIT_TOL = 1e-3
+#: A learned candidate ONNX Runtime takes instead of torch's lies at most this far below torch's
+#: weakest in cosine similarity (a tie within rounding; cosines span [-1, 1]).
+TIE_TOL = 1e-4
 
 
 def _corner(n: int, seed: int) -> np.ndarray:
@@ -42,7 +45,10 @@ def test_the_shipped_export_gives_torchs_outputs(num_points):
     ckpt = default_weights()
     p = parity(ckpt, onnx_path_for(ckpt), num_points=num_points)
     assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
-    assert p["candidates_equal"] >= 0.999          # a learned top-3 tie may order differently
+    # The learned top 3 may differ where two target points tie in cosine similarity to within
+    # the kernels' rounding (which the CPU decides: 6 of 5120 differed on an AVX2 EPYC, 0-5 on
+    # AVX-512 machines); every difference is such a tie, and they are rare.
+    assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL
 
 
 def test_the_engine_uses_it_by_default_with_the_same_confidences():
@@ -78,9 +84,10 @@ def test_export_of_any_checkpoint_and_a_stale_export_is_refused(tiny, capsys):
     assert export_main([str(a)]) == 0
     line = capsys.readouterr().out.strip()
     assert line.startswith(f"{onnx_path_for(a)}: overlap logits within ")
-    assert float(line.split("candidates equal ")[1].split()[0]) >= 0.99   # random weights: near-ties
+    assert float(line.split("candidates equal ")[1].split(",")[0]) >= 0.99   # random weights: near-ties
     p = parity(a, onnx_path_for(a), num_points=128)
     assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["candidates_equal"] >= 0.99
+    assert p["tie_gap"] < TIE_TOL
     pre = PreprocessConfig(num_points=128)
     assert Registrar.from_checkpoint(a, device="cpu", preprocess=pre)._onnx is not None
     # a's export beside b: another checkpoint's, never used.
