@@ -20,11 +20,15 @@ score so far. Multi-GPU / multi-node through torch DistributedDataParallel under
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
 import os
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -325,6 +329,7 @@ class Trainer:
         self.step = 0
         self.elapsed = 0.0
         self.best = math.inf
+        self.stopped_by: int | None = None     # the signal that ended run() early, if one did
         self.warm_start: dict[str, Any] = {}
         self.out = Path(cfg.train.out_dir)
         if resume:
@@ -484,56 +489,82 @@ class Trainer:
         if cfg.bf16 and not bf16:
             print("[cegc-train] train.bf16: this CPU has no bf16 hardware (it would run slower than "
                   "fp32, shared/notes/CPU_FACTS.md), training in fp32", flush=True)
-        while self.step < cfg.max_steps and self.elapsed < cfg.max_minutes * 60:
-            stage = _stage(cfg, self.step + self.curriculum_offset)
-            b = next(batches)
-            with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=bf16):
-                out, bb = _forward(self.net, b, self.device, cfg)
-            loss, parts = _loss(self.cfg, out, bb)
-            self.opt.zero_grad(set_to_none=True)
-            if torch.isfinite(loss):
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
-                self.opt.step()
-            self.step += 1
-            now = time.perf_counter()
-            self.elapsed += now - t_prev
-            if bar is not None:
-                bar.n = int(min(self.elapsed, cfg.max_minutes * 60))
-                bar.set_postfix(step=self.step, loss=f"{parts['loss']:.3f}", acc=f"{parts['match_acc']:.2f}")
-            t_prev = now
-            for k, v in parts.items():
-                acc.setdefault(k, []).append(v)
-            is_val = self.step % cfg.val_every == 0
-            if is_val:
-                val = self.validate()
-                t_prev = time.perf_counter()
-                # best = highest recall, then lowest mean rotation error (stored negated-recall first)
-                score = -val["val_recall"] * 1000.0 + val["val_rre_mean"]
-                if self.rank == 0:      # every validated state, for the learning curve (tools/learning_curve.py)
-                    save_checkpoint(self.out / "snapshots" / f"step_{self.step:07d}.pt", self.model, self.metadata(val))
-                if score < self.best:
-                    self.best = score
-                    if self.rank == 0:
-                        save_checkpoint(self.out / "best.pt", self.model, self.metadata(val))
-            if self.step % cfg.log_every == 0 or is_val:
-                row = {k: float(np.mean(v)) for k, v in acc.items()}
-                row.update(step=self.step, elapsed_min=self.elapsed / 60, points=stage.points,
-                           max_angle=stage.max_angle_deg, min_overlap=stage.min_overlap)
+        with self._stop_on_signals():
+            while (self.step < cfg.max_steps and self.elapsed < cfg.max_minutes * 60
+                   and self.stopped_by is None):
+                stage = _stage(cfg, self.step + self.curriculum_offset)
+                b = next(batches)
+                with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=bf16):
+                    out, bb = _forward(self.net, b, self.device, cfg)
+                loss, parts = _loss(self.cfg, out, bb)
+                self.opt.zero_grad(set_to_none=True)
+                if torch.isfinite(loss):
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                    self.opt.step()
+                self.step += 1
+                now = time.perf_counter()
+                self.elapsed += now - t_prev
+                if bar is not None:
+                    bar.n = int(min(self.elapsed, cfg.max_minutes * 60))
+                    bar.set_postfix(step=self.step, loss=f"{parts['loss']:.3f}", acc=f"{parts['match_acc']:.2f}")
+                t_prev = now
+                for k, v in parts.items():
+                    acc.setdefault(k, []).append(v)
+                is_val = self.step % cfg.val_every == 0
                 if is_val:
-                    row.update(val)
-                if self.rank == 0:
-                    writer.writerow(row)
-                    logf.flush()
-                acc = {}
-            if now - last_ckpt > cfg.checkpoint_minutes * 60:
-                self._save_last()
-                last_ckpt = time.perf_counter()
+                    val = self.validate()
+                    t_prev = time.perf_counter()
+                    # best = highest recall, then lowest mean rotation error (stored negated-recall first)
+                    score = -val["val_recall"] * 1000.0 + val["val_rre_mean"]
+                    if self.rank == 0:      # every validated state, for the learning curve (tools/learning_curve.py)
+                        save_checkpoint(self.out / "snapshots" / f"step_{self.step:07d}.pt", self.model, self.metadata(val))
+                    if score < self.best:
+                        self.best = score
+                        if self.rank == 0:
+                            save_checkpoint(self.out / "best.pt", self.model, self.metadata(val))
+                if self.step % cfg.log_every == 0 or is_val:
+                    row = {k: float(np.mean(v)) for k, v in acc.items()}
+                    row.update(step=self.step, elapsed_min=self.elapsed / 60, points=stage.points,
+                               max_angle=stage.max_angle_deg, min_overlap=stage.min_overlap)
+                    if is_val:
+                        row.update(val)
+                    if self.rank == 0:
+                        writer.writerow(row)
+                        logf.flush()
+                    acc = {}
+                if now - last_ckpt > cfg.checkpoint_minutes * 60:
+                    self._save_last()
+                    last_ckpt = time.perf_counter()
         self._save_last()
         if bar is not None:
             bar.close()
         logf.close()
+        if self.stopped_by is not None and self.rank == 0:
+            print(f"[cegc-train] stopped by {signal.Signals(self.stopped_by).name} after step "
+                  f"{self.step}; {self.out / 'last.pt'} holds it", flush=True)
         return val
+
+    @contextlib.contextmanager
+    def _stop_on_signals(self) -> Iterator[None]:
+        """SIGTERM or SIGINT (``kill``, Ctrl-C) end the run after the step in progress, with
+        last.pt saved at that step, so a resume loses nothing and the log has no step twice
+        (without it, the steps since the last periodic checkpoint were lost and logged again).
+        Only from the main thread (where Python delivers signals); the previous handlers are
+        restored on the way out."""
+        self.stopped_by = None
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def stop(signum: int, _frame: Any) -> None:
+            self.stopped_by = signum
+        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def metadata(self, val: dict[str, float]) -> dict[str, Any]:
         import platform

@@ -101,6 +101,52 @@ def test_tiny_run_logs_validates_checkpoints_and_resumes(tmp_path):
     assert all(None not in r and np.isfinite(float(r["loss"])) for r in rows)
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_sigterm_ends_the_run_after_its_step_with_last_pt_saved(tmp_path, monkeypatch, workers):
+    """``kill`` / ``pkill -f cegc-train`` (the trainer and its DataLoader worker alike) during
+    step 3 of a 1000-step run: the step finishes, last.pt holds step 3, the log ends at 3, and a
+    resume goes on from there; the process's own handler is back afterwards."""
+    import multiprocessing
+    import os
+    import signal
+
+    import cegc_ros.training as training
+    frags = fragments()
+    cfg = tiny_config(tmp_path / "run", max_steps=1000)
+    cfg.train.workers = workers
+    cfg.train.val_every = 1000
+    trainer = Trainer(cfg, device="cpu", fragments=frags, val_fragments=frags, progress=False)
+    inner = training._loss
+
+    def loss_then_kill(*args, **kwargs):
+        if trainer.step == 2:                 # the third step is under way
+            for child in multiprocessing.active_children():
+                os.kill(child.pid, signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return inner(*args, **kwargs)
+    monkeypatch.setattr(training, "_loss", loss_then_kill)
+
+    class Killed(Exception):
+        pass
+
+    def fallback(signum, frame):              # a trainer without its handler fails, not pytest
+        raise Killed
+    before = signal.signal(signal.SIGTERM, fallback)
+    try:
+        trainer.run()
+        assert signal.getsignal(signal.SIGTERM) is fallback
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert trainer.step == 3 and trainer.stopped_by == signal.SIGTERM
+    with open(tmp_path / "run" / "metrics.csv") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [1, 2, 3]
+    again = Trainer(cfg, resume=tmp_path / "run" / "last.pt", device="cpu", fragments=frags,
+                    val_fragments=frags, progress=False)
+    assert again.step == 3
+    for k, v in again.model.state_dict().items():
+        assert torch.equal(v, trainer.model.state_dict()[k])
+
+
 def _exact_shared(batch: dict[str, torch.Tensor]) -> float:
     """Share of source points that land exactly (1e-5) on a target point under the ground truth."""
     from scipy.spatial import cKDTree
