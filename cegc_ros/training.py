@@ -550,10 +550,11 @@ class Trainer:
         """SIGTERM or SIGINT (``kill``, Ctrl-C) end the run after the step in progress, with
         last.pt saved at that step, so a resume loses nothing and the log has no step twice
         (without it, the steps since the last periodic checkpoint were lost and logged again).
-        Only from the main thread (where Python delivers signals); the previous handlers are
-        restored on the way out."""
+        Only from the main thread (where Python delivers signals) and not under torchrun (ranks
+        that stopped after different steps would wait on each other's gradients); the previous
+        handlers are restored on the way out."""
         self.stopped_by = None
-        if threading.current_thread() is not threading.main_thread():
+        if self.distributed or threading.current_thread() is not threading.main_thread():
             yield
             return
 
