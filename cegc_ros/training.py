@@ -254,6 +254,16 @@ class PairStream(torch.utils.data.IterableDataset):
             step += w
 
 
+def _worker_ignores_stop(_worker_id: int) -> None:
+    """A DataLoader worker leaves SIGTERM and SIGINT to the trainer: ``pkill -f cegc-train`` and
+    Ctrl-C reach the workers too, and a worker that died of it would make torch raise in the
+    trainer in the middle of its step, before last.pt is saved (test_training). It keeps feeding
+    until the trainer, its step finished and saved (:meth:`Trainer._stop_on_signals`), shuts
+    the loader down."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def bf16_hardware(device: str, cpuinfo: str = "/proc/cpuinfo") -> bool:
     """Whether bf16 autocast pays on ``device``: CUDA, or a CPU with AVX-512-BF16 or AMX-BF16
     (on an AVX2-only CPU torch emulates bf16 and runs slower than fp32)."""
@@ -477,7 +487,7 @@ class Trainer:
         stream = PairStream(self.sampler, cfg, self.rank, self.step, self.curriculum_offset)
         if cfg.workers > 0:
             batches = iter(torch.utils.data.DataLoader(stream, batch_size=None, num_workers=cfg.workers,
-                                                       prefetch_factor=4))
+                                                       prefetch_factor=4, worker_init_fn=_worker_ignores_stop))
         else:
             batches = iter(stream)
         self.model.train()

@@ -101,50 +101,50 @@ def test_tiny_run_logs_validates_checkpoints_and_resumes(tmp_path):
     assert all(None not in r and np.isfinite(float(r["loss"])) for r in rows)
 
 
+_STOPPABLE_RUN = """
+import sys
+from pathlib import Path
+sys.path.insert(0, {test_dir!r})
+from test_training import fragments, tiny_config
+from cegc_ros.training import Trainer
+cfg = tiny_config(Path({out!r}), max_steps=10**6)
+cfg.train.workers, cfg.train.val_every = {workers}, 10**6
+trainer = Trainer(cfg, device="cpu", fragments=fragments(), val_fragments=fragments(), progress=False)
+trainer.run()
+print("stopped after step", trainer.step, "by", trainer.stopped_by, flush=True)
+"""
+
+
 @pytest.mark.parametrize("workers", [0, 1])
-def test_sigterm_ends_the_run_after_its_step_with_last_pt_saved(tmp_path, monkeypatch, workers):
-    """``kill`` / ``pkill -f cegc-train`` (the trainer and its DataLoader worker alike) during
-    step 3 of a 1000-step run: the step finishes, last.pt holds step 3, the log ends at 3, and a
-    resume goes on from there; the process's own handler is back afterwards."""
-    import multiprocessing
+def test_sigterm_ends_the_run_after_its_step_with_last_pt_saved(tmp_path, workers):
+    """A run in its own process group gets SIGTERM, as ``pkill -f cegc-train`` or Ctrl-C send it
+    to the trainer and its DataLoader worker alike: it exits 0 after the step in progress, its
+    last.pt holds that step and its log ends there, so a resume goes on without a gap or a
+    repeat."""
     import os
     import signal
-
-    import cegc_ros.training as training
-    frags = fragments()
-    cfg = tiny_config(tmp_path / "run", max_steps=1000)
-    cfg.train.workers = workers
-    cfg.train.val_every = 1000
-    trainer = Trainer(cfg, device="cpu", fragments=frags, val_fragments=frags, progress=False)
-    inner = training._loss
-
-    def loss_then_kill(*args, **kwargs):
-        if trainer.step == 2:                 # the third step is under way
-            for child in multiprocessing.active_children():
-                os.kill(child.pid, signal.SIGTERM)
-            os.kill(os.getpid(), signal.SIGTERM)
-        return inner(*args, **kwargs)
-    monkeypatch.setattr(training, "_loss", loss_then_kill)
-
-    class Killed(Exception):
-        pass
-
-    def fallback(signum, frame):              # a trainer without its handler fails, not pytest
-        raise Killed
-    before = signal.signal(signal.SIGTERM, fallback)
-    try:
-        trainer.run()
-        assert signal.getsignal(signal.SIGTERM) is fallback
-    finally:
-        signal.signal(signal.SIGTERM, before)
-    assert trainer.step == 3 and trainer.stopped_by == signal.SIGTERM
-    with open(tmp_path / "run" / "metrics.csv") as fh:
-        assert [int(r["step"]) for r in csv.DictReader(fh)] == [1, 2, 3]
-    again = Trainer(cfg, resume=tmp_path / "run" / "last.pt", device="cpu", fragments=frags,
-                    val_fragments=frags, progress=False)
-    assert again.step == 3
-    for k, v in again.model.state_dict().items():
-        assert torch.equal(v, trainer.model.state_dict()[k])
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "run"
+    code = _STOPPABLE_RUN.format(test_dir=str(Path(__file__).parent), out=str(out), workers=workers)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    log = out / "metrics.csv"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log.exists() and len(log.read_text().splitlines()) > 4:      # a few steps done
+            break
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr[-2000:]
+    step = int(stdout.split("stopped after step ")[1].split()[0])
+    assert f"by {int(signal.SIGTERM)}" in stdout and step >= 4
+    state = torch.load(out / "last.pt", map_location="cpu", weights_only=True)
+    assert int(state["step"]) == step
+    with open(log) as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == list(range(1, step + 1))
 
 
 def _exact_shared(batch: dict[str, torch.Tensor]) -> float:
@@ -467,3 +467,34 @@ def test_candidate_loss_with_the_ranking_term_prefers_the_right_order():
                                          torch.zeros(1, N, 2), torch.zeros(1, N), feats, feats),
                          src, tgt, R, t, CandidateLossConfig())[1]
     assert off["l_rank"] == 0.0
+
+
+def test_descriptor_positives_within_the_threshold_count_as_partners():
+    """64 points on a line 1 cm apart, the target the same points shifted: each source point's
+    nearest partner is its own copy, and the copies of its two neighbours lie within the match
+    threshold (2 x the spacing). Features that point each source point at its neighbour's copy
+    cost the "nearest" InfoNCE about 1/temperature and the "within" one almost nothing; features
+    that point at the copy itself cost both little, "within" never more."""
+    from cegc_ros.model.cegc import CandidateOutput
+    from cegc_ros.model.losses import CandidateLossConfig, candidate_loss
+    N = 64
+    src = torch.zeros(1, N, 3)
+    src[0, :, 0] = torch.arange(N) * 0.01
+    R, t = torch.eye(3)[None], torch.tensor([[0.0, 0.0, 0.5]])
+    tgt = src + t[:, None]
+    eye = torch.eye(N)[None]
+    cand = torch.arange(N).reshape(1, N, 1)
+
+    def l_desc(src_features: torch.Tensor, positives: str) -> float:
+        out = CandidateOutput(torch.zeros(1, N), torch.zeros(1, N), cand, torch.zeros(1, N, 1),
+                              torch.zeros(1, N), src_features, eye)
+        cfg = CandidateLossConfig(descriptor_positives=positives)
+        return candidate_loss(out, src, tgt, R, t, cfg)[1]["l_desc"]
+    nxt = torch.arange(1, N + 1)
+    nxt[-1] = N - 2
+    neighbour = eye[:, nxt]                                # source i looks like target i + 1
+    assert l_desc(neighbour, "nearest") > 0.8 / 0.1
+    assert l_desc(neighbour, "within") < 0.1
+    assert l_desc(eye, "within") <= l_desc(eye, "nearest") < 0.1
+    with pytest.raises(ValueError, match="descriptor_positives"):
+        CandidateLossConfig(descriptor_positives="all")

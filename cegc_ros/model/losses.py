@@ -90,6 +90,9 @@ def cegc_loss(out: CEGCOutput, src: Tensor, tgt: Tensor, R_gt: Tensor, t_gt: Ten
     return total, parts
 
 
+DESCRIPTOR_POSITIVES = ("nearest", "within")
+
+
 @dataclass
 class CandidateLossConfig:
     """Weights of the candidate-path loss (:func:`candidate_loss`); 0 turns a term off."""
@@ -103,6 +106,18 @@ class CandidateLossConfig:
     rank_negatives: int = 256    # the pair's most confident false candidates each true one must beat
     label_factor: float = 2.0    # match threshold = factor x median NN spacing of the target
     nce_temperature: float = 0.1
+    #: The descriptor InfoNCE's positives for a source point: "nearest" (its nearest target point
+    #: under the ground truth) or "within" (every target point within the match threshold, the
+    #: candidates the inlier labels and the engine's evaluation count as true; multi-positive,
+    #: log of their summed probability). With "nearest" the other target points within the
+    #: threshold (on a grid-sampled surface 2-4 of them) are negatives, though a candidate there
+    #: is a true one (campaign_2026-12-05).
+    descriptor_positives: str = "nearest"
+
+    def __post_init__(self) -> None:
+        if self.descriptor_positives not in DESCRIPTOR_POSITIVES:
+            raise ValueError(f"candidate_loss.descriptor_positives must be one of "
+                             f"{DESCRIPTOR_POSITIVES}, got {self.descriptor_positives!r}")
 
 
 def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor, t_gt: Tensor,
@@ -112,8 +127,9 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     - inlier classification of the candidate pairs (as PointDSC): the engine's pair confidence
       is sigmoid(score) x sigmoid(overlap), so the score must mean "this pair is a true match";
     - a descriptor loss: cross-entropy of each overlapping source point's cosine similarities
-      to all target points (temperature ``nce_temperature``) against its true partner, so the
-      learned candidates (nearest in feature space) contain it;
+      to all target points (temperature ``nce_temperature``) against its true partner (or, with
+      ``descriptor_positives: within``, all of them within the match threshold), so the learned
+      candidates (nearest in feature space) contain it;
     - HOCE overlap BCE and the pose loss of the paper, the pose from a weighted Kabsch over all
       candidate pairs with the engine's weights (differentiable, so the weights learn to
       favour pairs that pull the pose right);
@@ -141,7 +157,13 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     l_i = 0.5 * (bce * inl).sum() / pos + 0.5 * (bce * (1 - inl)).sum() / neg
     sim = F.normalize(out.src_features.float(), dim=-1) @ F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
     logp = torch.log_softmax(sim / cfg.nce_temperature, dim=-1)
-    l_d = -(logp.gather(2, partner.unsqueeze(-1)).squeeze(-1) * has).sum() / has.sum().clamp_min(1.0)
+    if cfg.descriptor_positives == "within":
+        with torch.no_grad():     # the nearest always counts, so a row is never empty (finite)
+            pos = (d < thr[:, None, None]).scatter(2, partner.unsqueeze(-1), True)
+        log_pos = torch.logsumexp(logp.masked_fill(~pos, float("-inf")), dim=-1)   # (B, N)
+    else:
+        log_pos = logp.gather(2, partner.unsqueeze(-1)).squeeze(-1)
+    l_d = -(log_pos * has).sum() / has.sum().clamp_min(1.0)
     w = torch.sigmoid(out.scores.float()) * torch.sigmoid(out.src_overlap_logits.float())[:, :, None]
     R, t, _ = weighted_kabsch(src.unsqueeze(2).expand(-1, -1, k, -1).reshape(B, N * k, 3),
                               cand_pts.reshape(B, N * k, 3), w.reshape(B, N * k))
