@@ -110,8 +110,8 @@ class CandidateLossConfig:
     #: under the ground truth) or "within" (every target point within the match threshold, the
     #: candidates the inlier labels and the engine's evaluation count as true; multi-positive,
     #: log of their summed probability). With "nearest" the other target points within the
-    #: threshold (on a grid-sampled surface 2-4 of them) are negatives, though a candidate there
-    #: is a true one (campaign_2026-12-05).
+    #: threshold (about four: a median of five with the nearest on the validation pairs' 512
+    #: network points) are negatives, though a candidate there is a true one (campaign_2026-12-05).
     descriptor_positives: str = "nearest"
 
     def __post_init__(self) -> None:
