@@ -212,6 +212,9 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--peers: unknown method {m!r}, expected some of {', '.join(baselines.METHODS)}")
         seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or [pre.seed]
         rows: list[dict] = []
+        # the per-pair rows (their ranking and overlap columns search the full clouds) only
+        # when they are written
+        dumped = rows if args.dump is not None else None
         first: dict[str, Any] | None = None
         for name in list(args.checkpoints) + peers:
             per_seed = []
@@ -224,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     register = lambda s, t, m=name: baselines.register(m, s, t)   # noqa: E731
                 start = len(rows)
-                per_seed.append(evaluate(register, pairs, rows))
+                per_seed.append(evaluate(register, pairs, dumped))
                 for row in rows[start:]:
                     row["run"], row["seed"] = name, seed
             r = pooled(per_seed)
