@@ -108,11 +108,13 @@ def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndar
     if getattr(res, "source_overlap", None) is None or not len(res.source_overlap):
         return {}
     from scipy.spatial import cKDTree
+
+    from cegc_ros.data.protocols import transform_points
     out: dict[str, float] = {}
     for side, pts, conf, other, M in (("source", res.source_points, res.source_overlap, target, T),
                                       ("target", res.target_points, res.target_overlap, source,
                                        np.linalg.inv(T))):
-        moved = np.asarray(pts, np.float64) @ M[:3, :3].T + M[:3, 3]
+        moved = transform_points(M, np.asarray(pts, np.float64))
         d, _ = cKDTree(np.asarray(other, np.float64)).query(moved)
         true = d < res.inlier_distance
         conf = np.asarray(conf, np.float64)
