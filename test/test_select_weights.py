@@ -152,6 +152,31 @@ def test_overlap_ranking_measures_how_hoce_finds_the_overlap():
     assert select_weights.overlap_ranking(SimpleNamespace(), source, target, T) == {}
 
 
+def test_pose_evidence_prefers_the_pose_that_explains_the_clouds():
+    """A room corner seen from the origin (two walls and a floor): the ground truth lays the
+    source on the target (nearly every point within the ICP distance, nothing in free space);
+    an answer 0.5 m off puts the walls in front of what the target's sensor saw and scores far
+    lower; the ground truth itself as the answer scores the same as the truth."""
+    import numpy as np
+
+    from cegc_ros.config import EngineConfig
+    rng = np.random.default_rng(0)
+    n = 3000
+    u, v = rng.uniform(-1.5, 1.5, (2, n))
+    corner = np.concatenate([np.c_[np.full(n, 3.0), u, v], np.c_[u, np.full(n, 3.0), v],
+                             np.c_[u + 1.5, v + 1.5, np.full(n, -1.2)]])
+    source, target = corner[::2], corner[1::2]
+    T = np.eye(4)
+    off = np.eye(4)
+    off[:3, 3] = [-0.5, -0.5, 0.0]
+    eng = EngineConfig()
+    right = select_weights.pose_evidence(T, source, target, T, eng)
+    wrong = select_weights.pose_evidence(off, source, target, T, eng)
+    assert right["gt_evidence"] > 0.9 and right["result_evidence"] == right["gt_evidence"]
+    assert wrong["gt_evidence"] == right["gt_evidence"]
+    assert wrong["result_evidence"] < 0.5 * wrong["gt_evidence"]
+
+
 def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):
     import csv
 
@@ -168,6 +193,9 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
     # and how HOCE's overlap confidences find each cloud's overlap
     assert all(0.0 < float(r["source_overlap_share"]) <= 1.0 and 0.0 <= float(r["target_overlap_kept"]) <= 1.0
                for r in rows)
+    # and the geometric evidence of the truth and of the answer (a right answer: about the truth's)
+    assert all(0.0 < float(r["gt_evidence"]) <= 1.0 and 0.0 <= float(r["result_evidence"]) <= 1.0 for r in rows)
+    assert all(abs(float(r["result_evidence"]) - float(r["gt_evidence"])) < 0.1 for r in rows if r["correct"] == "True")
     assert recall == sum(r["correct"] == "True" and r["valid"] == "True" for r in rows) / 2
     # correct means within 15 deg and 0.3 m, and the dumped errors say so
     assert all((r["correct"] == "True") == (float(r["rotation_error_deg"]) < 15.0

@@ -15,7 +15,9 @@ chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preproces
 method on a line says how many evaluations it won and lost against the first, with a sign test.
 ``--dump FILE`` writes one row per evaluation, with how the learned confidences rank that pair's
 correspondences against the ground truth (:func:`ranking`: true ones, true ones among the 100
-most confident, AUC), the learned part's quality apart from the estimator's.
+most confident, AUC), the learned part's quality apart from the estimator's, how HOCE finds
+each cloud's overlap (:func:`overlap_ranking`) and how much geometric evidence the ground truth
+and the answer each have (:func:`pose_evidence`: a wrong answer the geometry prefers to the truth).
 """
 
 from __future__ import annotations
@@ -29,12 +31,13 @@ from typing import Any
 import numpy as np
 
 
-def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, Any]:
+def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = None) -> dict[str, Any]:
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
     and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
     valid, rotation and translation errors, fitness, each stage's seconds, and the rank of the
-    first right pose among those the estimator's verification ranked, -1 for none) for ``--dump``."""
+    first right pose among those the estimator's verification ranked, -1 for none) for ``--dump``;
+    with ``evidence`` (an EngineConfig) also :func:`pose_evidence`'s columns."""
     from cegc_ros.metrics import rotation_error_deg
     ok, low, secs, missed = [], [], [], []
     for p in pairs:
@@ -64,6 +67,7 @@ def evaluate(register, pairs, rows: list[dict] | None = None) -> dict[str, Any]:
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          **ranking(res, T), **overlap_ranking(res, p.source, p.target, T),
+                         **(pose_evidence(E, p.source, p.target, T, evidence) if evidence is not None else {}),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
     return summary(np.array(ok, bool), np.array(low, bool), secs, missed)
 
@@ -123,6 +127,31 @@ def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndar
         out[f"{side}_overlap_auc"] = _auc(conf, true)
         out[f"{side}_overlap_kept"] = float(true[top].sum() / true.sum()) if true.any() else float("nan")
     return out
+
+
+def pose_evidence(T_result: np.ndarray, source: np.ndarray, target: np.ndarray, T: np.ndarray,
+                  eng: Any, max_points: int = 5000) -> dict[str, float]:
+    """Can the geometry alone tell the ground truth T (4, 4) from the answer T_result? Each pose
+    is refined by the engine's ICP (``eng``: EngineConfig; the answer is the engine's own,
+    already refined) and scored as the estimator's verification scores a hypothesis, but on the
+    pair's full clouds (source, target: (N, 3), (M, 3) metres, each in its sensor's frame): the
+    share of (at most ``max_points``, seeded) source points within the ICP distance of a target
+    point, times exp(-eng.free_space x the share put where the other sensor saw through,
+    cegc_ros/visibility.py). ``gt_evidence`` and ``result_evidence``; a wrong answer with more
+    evidence than the ground truth is a pair the geometry cannot settle (no verification picks
+    the truth there), one with less a miss that better hypotheses or verification could fix."""
+    from cegc_ros import refine
+    from cegc_ros.geometry import normalise_pair
+    from cegc_ros.visibility import free_space_violations
+    src, tgt = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    dist = eng.icp_max_distance * normalise_pair(src, tgt)[2].scale
+    truth = refine.icp(src, tgt, np.asarray(T, np.float64), dist, eng.icp_max_iterations, eng.icp_points)
+    poses = np.stack([truth, np.asarray(T_result, np.float64)])
+    keep = np.random.default_rng(0).permutation(len(src))[:max_points]
+    fit = refine.fitnesses(poses[:, :3, :3], poses[:, :3, 3], src[keep], tgt, dist)
+    free = np.exp(-eng.free_space * free_space_violations(poses[:, :3, :3], poses[:, :3, 3], src, tgt))
+    score = fit * free
+    return {"gt_evidence": float(score[0]), "result_evidence": float(score[1])}
 
 
 def summary(ok: np.ndarray, low: np.ndarray, secs: list[float], missed: list[bool]) -> dict[str, Any]:
@@ -229,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     register = lambda s, t, m=name: baselines.register(m, s, t)   # noqa: E731
                 start = len(rows)
-                per_seed.append(evaluate(register, pairs, dumped))
+                per_seed.append(evaluate(register, pairs, dumped, eng if dumped is not None else None))
                 for row in rows[start:]:
                     row["run"], row["seed"] = name, seed
             r = pooled(per_seed)
