@@ -201,6 +201,13 @@ class OutputConfig:
     min_fitness: float = field(default=0.0, metadata=_meta(
         "Poses whose fitness (fraction of source points near the target after alignment) is "
         "below this are not published; the rejection is logged and counted.", 0.0, 1.0))
+    max_ambiguity: float = field(default=1.0, metadata=_meta(
+        "Poses whose ambiguity (how close the best distinct alignment came to the answer in "
+        "the estimator's verification: 0 no rival, 1 a tie) is above this are not published; "
+        "the rejection is logged and counted. 1 (default) publishes every pose; 0.8 drops half "
+        "of the wrong answers and a tenth of the right ones on synthetic different-view "
+        "validation pairs (docs/pipeline.md): for loop closures, where a wrong pose costs "
+        "more than a missed one.", 0.0, 1.0))
     overlap_threshold: float = field(default=0.5, metadata=_meta(
         "Points whose overlap confidence is at least this are published on ~/source_overlap "
         "and ~/target_overlap.", 0.0, 1.0))

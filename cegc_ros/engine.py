@@ -85,6 +85,10 @@ class RegistrationResult:
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage, and "total"
     #: (H, 4, 4) the poses the estimator's verification ranked (estimator.Estimate.hypotheses)
     hypotheses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    #: in [0, 1]: how close the best distinct alignment came to the answer in the estimator's
+    #: verification (estimator.ambiguity; 0: no rival, 1: a tie). High values flag answers the
+    #: geometry does not settle: most wrong low-overlap answers (docs/pipeline.md).
+    ambiguity: float = 0.0
 
 
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
@@ -330,7 +334,7 @@ class Registrar:
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
             reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, dropped=bounded.dropped,
-            timings=timings, hypotheses=est.hypotheses)
+            timings=timings, hypotheses=est.hypotheses, ambiguity=est.ambiguity)
 
 
 class _StageClock:

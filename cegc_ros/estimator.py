@@ -42,7 +42,10 @@ the paper:
    that score is multiplied by ``exp(-free_space x v)``, v the
    share of points each pose puts where the other cloud's sensor saw through
    (cegc_ros/visibility.py): the right low-overlap pose has few inliers and little fitness,
-   but it puts nothing in front of what the other sensor saw.
+   but it puts nothing in front of what the other sensor saw. The estimate's ``ambiguity``
+   is the best verification score among the verified poses distinct from the chosen one
+   (:func:`ambiguity`) over the chosen one's: near 1, the clouds' geometry does not settle the
+   pair (docs/pipeline.md, "Ambiguity").
 6. Refinement: the best hypothesis is re-solved ``refine_iterations`` times by weighted SVD over
    its inliers, weights ``w_i / (1 + (r_i / inlier_distance)^2)`` (the paper's post-refinement,
    with the learned confidence as prior).
@@ -106,6 +109,10 @@ class Estimate:
     #: best-counted first; before the final refinement): which poses were on the table, for
     #: telling a verification failure from a candidate failure (select_weights --dump).
     hypotheses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    #: the best verification score among the verified poses distinct from the chosen one, over
+    #: the chosen one's (:func:`ambiguity`): 0 when none is near it (or nothing was verified),
+    #: 1 a tie. How much the clouds' geometry prefers the answer to another alignment.
+    ambiguity: float = 0.0
 
 
 def kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -311,10 +318,11 @@ def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
-            known: dict[int, float]) -> tuple[int, np.ndarray, float]:
+            known: dict[int, float]) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
-    chosen one's fitness). ``visibility`` None: count x fitness alone. ``known``: fitnesses of
-    hypotheses (by index) an earlier call measured; this call's are added to it."""
+    chosen one's fitness, their verification scores). ``visibility`` None: count x fitness
+    alone. ``known``: fitnesses of hypotheses (by index) an earlier call measured; this call's
+    are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
     key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
@@ -327,7 +335,31 @@ def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: Co
     if cfg.free_space > 0 and visibility is not None:
         rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
     i = int(rank.argmax())
-    return int(top[i]), top, float(fit[i])
+    return int(top[i]), top, float(fit[i]), rank
+
+
+#: Two poses are distinct alignments when they put the source points more than this many
+#: inlier distances apart (root mean square; :func:`ambiguity`). Chosen on synthetic validation
+#: pairs (docs/pipeline.md, "Ambiguity"): at 1 a right answer's own near variants count as its
+#: rivals; 2 and 3 separate right from wrong answers about equally well.
+DISTINCT_FACTOR = 2.0
+
+
+def ambiguity(R: np.ndarray, t: np.ndarray, rank: np.ndarray, source: np.ndarray, distance: float
+              ) -> float:
+    """Verified poses R (H, 3, 3), t (H, 3) with their verification scores rank (H,) and the
+    source points (Ns, 3) -> the best score among the poses that put the source points more
+    than ``distance`` (root mean square) from where the best-scored pose puts them, over the
+    best score: 0 (no distinct rival, or nothing scored) to 1 (a tie). A wrong answer at low
+    overlap often has a rival close to it (a box-like room laid on itself two ways,
+    docs/pipeline.md); a right one at high overlap rarely does."""
+    if len(rank) < 2 or not rank.max() > 0:
+        return 0.0
+    b = int(rank.argmax())
+    # (R_h - R_b) p + (t_h - t_b) for every source point p: how far apart the two poses put it
+    gap = source[None] @ np.transpose(R - R[b], (0, 2, 1)) + (t - t[b])[:, None]       # (H, Ns, 3)
+    distinct = np.sqrt(np.square(gap).sum(-1).mean(1)) > distance
+    return float(rank[distinct].max() / rank[b]) if distinct.any() else 0.0
 
 
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
@@ -379,14 +411,15 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     total = _counts(res, w, thr)
     best = int(total.argmax())
     hypotheses = np.zeros((0, 4, 4))
+    rivalry = 0.0
     if verifying:
         explore = cfg.explore_seeds > 0
         known: dict[int, float] = {}
-        best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
+        best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
         if tried < len(seeds) and fit < cfg.sure_fitness:
             # the strongest seeds left the pair unsure: the rest of the spectral seeds
             R, t, res, total = _more_hypotheses((R, t, res, total), hard, seeds[tried:], src, tgt, w, thr, cfg)
-            best, top, fit = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
         if explore and fit < cfg.sure_fitness:
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
             # with the free-space check
@@ -396,8 +429,9 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                                                        replace=False)
                 R, t, res, total = _more_hypotheses((R, t, res, total), hard, rest[np.sort(pick)], src, tgt, w,
                                                     thr, cfg)
-            best, top, fit = _verify(R, t, total, thr, cfg, clouds, visibility, known)
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, visibility, known)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
+        rivalry = ambiguity(R[top], t[top], rank, np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
     Rb, tb, rb = R[best], t[best], res[best]
 
@@ -417,8 +451,8 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     inliers = rb < thr
     if inliers.sum() < 3:
         return Estimate(Rb, tb, inliers, False, "fewer than 3 correspondences agree with any hypothesis",
-                        hypotheses)
-    return Estimate(Rb, tb, inliers, True, hypotheses=hypotheses)
+                        hypotheses, rivalry)
+    return Estimate(Rb, tb, inliers, True, hypotheses=hypotheses, ambiguity=rivalry)
 
 
 def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,

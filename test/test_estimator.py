@@ -264,3 +264,54 @@ def test_sure_seeds_build_every_seed_when_the_first_choice_is_not_sure(monkeypat
     assert rotation_error_deg(R, split.R) < 0.5
     assert rotation_error_deg(full.R, split.R) < 1e-3 and np.linalg.norm(full.t - split.t) < 1e-5
     np.testing.assert_array_equal(split.inliers, full.inliers)
+
+
+def test_ambiguity_is_the_best_distinct_rivals_score_over_the_answers():
+    """Poses that put the source points within the distance of the best one's are its own
+    variants, not rivals; the best of the others sets the ratio; none: 0."""
+    from cegc_ros.estimator import ambiguity
+    src = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+    R = np.tile(np.eye(3), (4, 1, 1))
+    R[3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    t = np.array([[0, 0, 0], [0.02, 0, 0], [1.0, 0, 0], [0, 0, 0]], float)
+    rank = np.array([10.0, 9.9, 6.0, 7.0])
+    assert ambiguity(R, t, rank, src, 0.1) == pytest.approx(0.7)        # the rotated pose, not the shifted one
+    assert ambiguity(R[:3], t[:3], rank[:3], src, 0.1) == pytest.approx(0.6)
+    assert ambiguity(R[:2], t[:2], rank[:2], src, 0.1) == 0.0           # a near variant only
+    assert ambiguity(R[:1], t[:1], rank[:1], src, 0.1) == 0.0
+    assert ambiguity(R, t, np.zeros(4), src, 0.1) == 0.0
+
+
+def test_a_symmetric_scene_makes_the_answer_ambiguous_and_an_asymmetric_one_does_not():
+    """A target laid out symmetrically under a half turn about z: 40 correspondences under the
+    true pose and 40 under the true pose followed by the half turn lay the source on the target
+    equally well, so the estimate's ambiguity is about 1. Without the mirrored half, and
+    without the rival cluster, the same true cluster among 300 random correspondences leaves no
+    alignment near it."""
+    rng = np.random.default_rng(3)
+    half = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    R = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+    t = np.array([0.3, 0.2, -0.4])
+    base = rng.uniform(-2, 2, (750, 3)) + [2.5, 0, 0]
+
+    def problem(target, rival):
+        source = (target - t) @ R                                          # R source + t = target
+        i = rng.choice(len(target), 40, replace=False)
+        j = rng.choice(len(target), 40, replace=False)
+        noise = rng.choice(len(target), 300)
+        src = [source[i], source[noise]] + ([source[j]] if rival else [])
+        tgt = [target[i], rng.uniform(-4, 4, (300, 3))] + ([target[j] @ half.T] if rival else [])
+        return np.concatenate(src), np.concatenate(tgt), source
+
+    sym = np.concatenate([base, base @ half.T])
+    src, tgt, source = problem(sym, rival=True)
+    est = estimate_compatibility(src, tgt, np.ones(len(src)), 0.05, CompatibilityConfig(verify=50),
+                                 clouds=(source, sym))
+    assert est.ambiguity > 0.9
+    asym = np.concatenate([base, rng.uniform(-2, 2, (750, 3)) - [2.5, 0, 0]])
+    src, tgt, source = problem(asym, rival=False)
+    est = estimate_compatibility(src, tgt, np.ones(len(src)), 0.05, CompatibilityConfig(verify=50),
+                                 clouds=(source, asym))
+    assert rotation_error_deg(R, est.R) < 0.5 and est.ambiguity < 0.5
+    # without verification there is nothing to compare: 0
+    assert estimate_compatibility(src, tgt, np.ones(len(src)), 0.05).ambiguity == 0.0

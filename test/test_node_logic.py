@@ -50,11 +50,13 @@ class FakeResult:
     valid: bool
     reason: str
     refined: str = "none"
+    ambiguity: float = 0.0
     timings: dict = field(default_factory=dict)
 
 
 class FakeRegistrar:
-    """Answers T_KNOWN; fitness = (#source points % 100) / 100; invalid for 99 points."""
+    """Answers T_KNOWN; fitness = (#source points % 100) / 100, ambiguity = (#target points %
+    100) / 100; invalid for 99 source points."""
 
     MIN_POINTS = 16
     device = "cpu"
@@ -89,7 +91,7 @@ class FakeRegistrar:
         w = np.linspace(0, 1, m, dtype=np.float32)
         return FakeResult(T_KNOWN, s, t, so, to, corr, w, np.eye(6) * 1e-4,
                           (len(src) % 100) / 100, len(src) != 99,
-                          "" if len(src) != 99 else "degenerate (test)")
+                          "" if len(src) != 99 else "degenerate (test)", ambiguity=(len(tgt) % 100) / 100)
 
 
 @pytest.fixture(scope="module")
@@ -330,6 +332,27 @@ def test_min_fitness_and_runtime_parameters(ros):
     assert probe.by_stamp("source_overlap")[t].width == 64   # 128 scores linspace(0,1) >= 0.5
     node.set_parameters([Parameter("output.min_fitness", value=0.0),
                          Parameter("preprocess.num_points", value=64)])
+
+
+def test_max_ambiguity_drops_poses_another_alignment_explains_as_well(ros):
+    """output.max_ambiguity: a pose whose ambiguity is above it is not published, counted as
+    rejected.ambiguous; one at or below it is published; the diagnostics show the last value."""
+    from rclpy.parameter import Parameter
+
+    node, probe, _ = ros
+    assert node.set_parameters([Parameter("output.max_ambiguity", value=0.4)])[0].successful
+    before = _count(node, "rejected.ambiguous")
+    t = 3500 * SEC
+    _send_and_wait(node, probe, rh.cloud(_pts(200), "a", t), rh.cloud(_pts(260), "b", t))   # 0.6
+    assert _count(node, "rejected.ambiguous") == before + 1 and t not in probe.by_stamp("pose")
+    t += SEC
+    _send_and_wait(node, probe, rh.cloud(_pts(200), "a", t), rh.cloud(_pts(230), "b", t))   # 0.3
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 5.0)
+    assert _count(node, "rejected.ambiguous") == before + 1
+    assert node.diagnostics_values()["last_ambiguity"] == "0.3000"
+    bad = node.set_parameters([Parameter("output.max_ambiguity", value=-0.1)])[0]
+    assert not bad.successful and "output.max_ambiguity" in bad.reason
+    node.set_parameters([Parameter("output.max_ambiguity", value=1.0)])
 
 
 def test_sync_slop_out_of_order_and_unpaired(ros):

@@ -37,13 +37,14 @@ def test_json_result_matches_the_ground_truth_and_out_moves_the_source(pair, tmp
     out = tmp_path / "moved.npy"
     assert cli.main([str(source), str(target), "--json", "--out", str(out)]) == 0
     doc = json.loads(capsys.readouterr().out)          # exactly one JSON object
-    assert set(doc) >= {"T_target_source", "fitness", "valid", "timings"}
+    assert set(doc) >= {"T_target_source", "fitness", "ambiguity", "valid", "timings"}
     T = np.array(doc["T_target_source"])
     assert T.shape == (4, 4) and doc["valid"] is True
     # The first network + ICP on this kind of pair: hundredths of a degree (docs/accuracy.md).
     assert rotation_error_deg(T_gt[:3, :3], T[:3, :3]) < 0.5
     assert translation_error(T_gt[:3, 3], T[:3, 3]) < 0.005   # unit-box scene
     assert 0.5 < doc["fitness"] <= 1.0
+    assert 0.0 <= doc["ambiguity"] < 0.5        # a clean copy pair: no rival alignment near it
     assert doc["timings"]["total"] > 0 and all(v >= 0 for v in doc["timings"].values())
     moved = np.load(out)
     expected = source_xyz @ T_gt[:3, :3].T + T_gt[:3, 3]
@@ -63,8 +64,9 @@ def test_readable_output_with_the_nodes_params_file(pair, tmp_path, capsys):
     matrix = np.array([[float(v) for v in line.split()] for line in text[1:5]])
     assert np.allclose(matrix, np.eye(4), atol=1e-3)      # a cloud onto itself
     assert text[5].startswith("rotation ") and " deg" in text[5]
-    assert text[6].startswith("fitness  ") and text[7] == "valid    yes"
-    assert text[8].startswith("timings  ms: ") and "total" in text[8]
+    assert text[6].startswith("fitness  ") and text[7].startswith("ambiguity ")
+    assert text[8] == "valid    yes"
+    assert text[9].startswith("timings  ms: ") and "total" in text[9]
 
 
 def _error(capsys, argv: list[str]) -> str:

@@ -16,6 +16,7 @@ REJECT_REASONS = (
     "missing_frame",     # empty header.frame_id: outputs would have no frame
     "invalid_result",    # the engine judged its result invalid (reason logged)
     "low_fitness",       # fitness < output.min_fitness
+    "ambiguous",         # ambiguity > output.max_ambiguity
     "engine_error",      # the engine raised, or its process died; logged with the reason
 )
 
@@ -49,6 +50,7 @@ class NodeStats:
         self._latency: deque[float] = deque(maxlen=window)       # pair complete -> pose out (s)
         self._engine_time: deque[float] = deque(maxlen=window)   # engine call (s)
         self.last_fitness = float("nan")
+        self.last_ambiguity = float("nan")
         self.busy = False
 
     def add(self, key: str, n: int = 1) -> None:
@@ -93,6 +95,7 @@ class NodeStats:
         values["latency_max_ms"] = f"{max(lat) * 1e3:.1f}" if lat else "nan"
         values["engine_p50_ms"] = f"{percentiles_ms(eng, (50,))[0]:.1f}"
         values["last_fitness"] = f"{self.last_fitness:.4f}"
+        values["last_ambiguity"] = f"{self.last_ambiguity:.4f}"
         values["busy"] = str(self.busy).lower()
         values.update({k: str(v) for k, v in (extra or {}).items()})
         return values

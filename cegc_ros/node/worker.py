@@ -155,6 +155,12 @@ class RegistrationWorker:
         if result.fitness < min_fitness:
             raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
                            f"output.min_fitness {min_fitness:.3f}")
+        self.stats.last_ambiguity = float(result.ambiguity)
+        max_ambiguity = cfg["output"].max_ambiguity
+        if result.ambiguity > max_ambiguity:
+            raise Rejected("ambiguous", f"ambiguity {result.ambiguity:.3f} > "
+                           f"output.max_ambiguity {max_ambiguity:.3f}: another alignment "
+                           f"explains the clouds nearly as well")
         self._publish(job, result)
         self._on_result(job, result)
 

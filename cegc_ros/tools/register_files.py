@@ -6,9 +6,10 @@
 SOURCE and TARGET: .npy ((N, 3) or wider: the first three columns are x, y, z) or any point
 cloud file Open3D reads (.ply, .pcd, .xyz, .xyzn, .xyzrgb, .pts); units are metres for the
 node's default parameters. Prints T_target_source (maps source points into the target frame)
-as a 4x4 matrix, the fitness, whether the result is valid and the time of each stage;
-``--json`` prints the same as one JSON object instead (keys T_target_source, fitness, valid,
-reason, timings; timings in seconds). ``--params`` takes the node's parameter file
+as a 4x4 matrix, the fitness, the ambiguity (how close another alignment came: 0 to 1),
+whether the result is valid and the time of each stage; ``--json`` prints the same as one JSON
+object instead (keys T_target_source, fitness, ambiguity, valid, reason, timings; timings in
+seconds). ``--params`` takes the node's parameter file
 (``preprocess.*`` and ``engine.*`` are used); ``--out`` writes the source moved into the target
 frame (.npy, or a format Open3D writes: .ply, .pcd, .xyz, .pts).
 
@@ -169,13 +170,15 @@ def result_dict(result: Any) -> dict[str, Any]:
     """The JSON document of one result."""
     return {"T_target_source": np.asarray(result.T_target_source, float).tolist(),
             "fitness": float(result.fitness),
+            "ambiguity": float(result.ambiguity),
             "valid": bool(result.valid),
             "reason": result.reason,
             "timings": {k: float(v) for k, v in result.timings.items()}}
 
 
 def format_result(result: Any) -> str:
-    """The result for people: the matrix, its angle and shift, fitness, validity, timings."""
+    """The result for people: the matrix, its angle and shift, fitness, ambiguity, validity,
+    timings."""
     from cegc_ros.metrics import rotation_error_deg
 
     T = np.asarray(result.T_target_source, float)
@@ -190,6 +193,8 @@ def format_result(result: Any) -> str:
          "(units of the input)"),
         (f"fitness  {result.fitness:.4f} (share of source points within "
          f"{result.inlier_distance:.4g} of a target point after alignment)"),
+        (f"ambiguity {result.ambiguity:.3f} (0: no other alignment came near; 1: another one "
+         "explains the clouds as well)"),
         "valid    " + ("yes" if result.valid else f"no: {result.reason}"),
         f"timings  ms: {stages}" + (f"; total {1000 * total:.1f}" if total is not None else ""),
     ]

@@ -66,6 +66,7 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
                          "hypotheses": len(hyp), "first_right_hypothesis": right_ones[0] if right_ones else -1,
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
+                         "ambiguity": float(getattr(res, "ambiguity", float("nan"))),
                          **ranking(res, T), **overlap_ranking(res, p.source, p.target, T),
                          **(pose_evidence(E, p.source, p.target, T, evidence) if evidence is not None else {}),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
