@@ -431,8 +431,8 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                                                     thr, cfg)
             best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, visibility, known)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
-        rivalry = ambiguity(R[top], t[top], rank, np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
+        rivalry = ambiguity(R[top], t[top], rank, np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
     Rb, tb, rb = R[best], t[best], res[best]
 
     # 6. refinement on the inliers with robust weights.

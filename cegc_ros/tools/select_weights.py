@@ -132,10 +132,10 @@ def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndar
 
 def pose_evidence(T_result: np.ndarray, source: np.ndarray, target: np.ndarray, T: np.ndarray,
                   eng: Any, max_points: int = 5000) -> dict[str, float]:
-    """Can the geometry alone tell the ground truth T (4, 4) from the answer T_result? Each pose
-    is refined by the engine's ICP (``eng``: EngineConfig; the answer is the engine's own,
-    already refined) and scored as the estimator's verification scores a hypothesis, but on the
-    pair's full clouds (source, target: (N, 3), (M, 3) metres, each in its sensor's frame): the
+    """Can the geometry alone tell the ground truth T (4, 4) from the answer T_result? The truth
+    is refined by the engine's ICP (``eng``: EngineConfig; the answer is the engine's, already
+    refined) and each pose is scored by the geometric part of the estimator's verification
+    (fitness x free space, without the correspondence count), but on the pair's full clouds (source, target: (N, 3), (M, 3) metres, each in its sensor's frame): the
     share of (at most ``max_points``, seeded) source points within the ICP distance of a target
     point, times exp(-eng.free_space x the share put where the other sensor saw through,
     cegc_ros/visibility.py). ``gt_evidence`` and ``result_evidence``; a wrong answer with more
