@@ -235,6 +235,12 @@ def test_config_rejects_bad_values():
         ModelConfig(variant="nope")
     with pytest.raises(ValueError, match="overlap_ratio"):
         ModelConfig(overlap_ratio=0.0)
+    with pytest.raises(ValueError, match="dilation"):
+        ModelConfig(dilation=0)
+    # checkpoints written before the field existed load with the paper's neighbourhood
+    old = ModelConfig().to_dict()
+    del old["dilation"]
+    assert ModelConfig.from_dict(old).dilation == 1
     assert ModelConfig.from_dict(ModelConfig().to_dict()) == ModelConfig()
 
 
@@ -313,3 +319,31 @@ def test_both_clouds_as_one_batch_are_the_per_cloud_network(variant):
         # unequal clouds take the per-cloud path
         out = model.score_candidates(*inputs(96, 80), k_learned=3)
         assert out.tgt_features.shape == (1, 80, 32)
+
+
+@pytest.mark.parametrize("variant", ["ri", "paper"])
+def test_dilated_agnn_gathers_every_dth_of_the_k_d_nearest_in_its_later_layers(variant):
+    """dilation d: layer 1's edges are still the k nearest neighbours, layers 2 and 3 gather
+    from every d-th of the k x d nearest (the nearest first); the same weights with d = 1 are
+    the undilated network, and with d = 3 a different function of the same points."""
+    from cegc_ros.model.features import knn, paper_edges, ppf_edges
+    torch.manual_seed(0)
+    src, _, nrm, _, desc, _ = inputs(120, 120, seed=7)
+    plain = CEGC(small_cfg(variant=variant)).eval()
+    wide = CEGC(small_cfg(variant=variant, dilation=3)).eval()
+    wide.load_state_dict(plain.state_dict())
+    k = plain.cfg.k
+    idx, near36 = knn(src, k), knn(src, 3 * k)
+    assert torch.equal(near36[..., :k], idx)
+    far = near36[..., ::3]
+    assert far.shape == idx.shape and torch.equal(far[..., 0], idx[..., 0])
+    with torch.no_grad():
+        if variant == "paper":
+            edges, feats = paper_edges(src, idx), None
+        else:
+            edges, feats = ppf_edges(src, nrm, idx), desc
+        by_hand = plain.agnn(edges, idx, feats, far)
+        got = wide.encode(src, nrm, desc)
+        assert torch.allclose(got, by_hand, atol=1e-6)
+        assert torch.equal(plain.encode(src, nrm, desc), plain.agnn(edges, idx, feats))
+        assert (got - plain.encode(src, nrm, desc)).abs().max() > 1e-3

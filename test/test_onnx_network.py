@@ -102,6 +102,22 @@ def test_export_of_any_checkpoint_and_a_stale_export_is_refused(tiny, capsys):
     assert net is None and why.startswith("b.onnx does not load: ")
 
 
+def test_a_dilated_network_exports_with_torchs_neighbourhoods(tmp_path):
+    """ModelConfig.dilation 3 picks AGNN neighbours by rank at every third boundary, where
+    torch.cdist and its ONNX export round distances differently (the shipped weights dilated:
+    overlap logits 0.1 apart); summed coordinate by coordinate, ONNX Runtime ranks them as torch
+    does and the export gives torch's outputs within the undilated network's tolerance."""
+    pytest.importorskip("onnx")
+    state = torch.load(default_weights(), map_location="cpu", weights_only=True)
+    state["model_config"]["dilation"] = 3
+    ckpt = tmp_path / "dilated.pt"
+    torch.save(state, ckpt)
+    assert export_main([str(ckpt)]) == 0
+    p = parity(ckpt, onnx_path_for(ckpt))
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
+    assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL
+
+
 def test_export_errors_are_one_line(tmp_path, capsys):
     assert export_main([str(tmp_path / "missing.pt")]) == 1
     err = capsys.readouterr().err.strip()

@@ -97,12 +97,14 @@ class CEGC(nn.Module):
 
     def encode(self, xyz: Tensor, normals: Tensor | None, desc: Tensor | None) -> Tensor:
         """Per-point local features (B, N, C2) of one cloud."""
-        idx = knn(xyz, self.cfg.k)
+        k, d = self.cfg.k, self.cfg.dilation
+        near = knn(xyz, k * d, exact=d > 1)                              # (B, N, k d), nearest first
+        idx, far = near[..., :k], (near[..., ::d] if d > 1 else None)
         if self.cfg.variant == "paper":
-            return self.agnn(paper_edges(xyz, idx), idx, None)
+            return self.agnn(paper_edges(xyz, idx), idx, None, far)
         if normals is None or desc is None:
             raise ValueError("variant 'ri' needs normals and descriptors for every cloud")
-        return self.agnn(ppf_edges(xyz, normals, idx), idx, desc)
+        return self.agnn(ppf_edges(xyz, normals, idx), idx, desc, far)
 
     def features(self, src: Tensor, tgt: Tensor, src_normals: Tensor | None, tgt_normals: Tensor | None,
                  src_desc: Tensor | None, tgt_desc: Tensor | None, stack: bool = True

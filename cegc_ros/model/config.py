@@ -25,6 +25,10 @@ class ModelConfig:
 
     variant: str = "ri"
     k: int = 12                          # kNN neighbourhood (paper: 12 everywhere)
+    # AGNN layers 2 and 3 gather every dilation-th of each point's k x dilation nearest
+    # neighbours (layer 1's edges stay the k nearest): a wider receptive field at the same
+    # cost. 1: the paper's neighbourhood (and every checkpoint before 2026-12-05).
+    dilation: int = 1
     agnn_dims: tuple[int, ...] = (64, 64, 128)   # C1 of the three AGNN layers
     feat_dim: int = 256                  # C2: per-point feature size (paper: 256)
     attn_layers: int = 2                 # interleaved (self, cross) blocks; the shipped weights have 1
@@ -48,6 +52,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.variant must be one of {VARIANTS}, got {self.variant!r}")
         if self.k < 2:
             raise ValueError(f"ModelConfig.k must be >= 2, got {self.k}")
+        if self.dilation < 1:
+            raise ValueError(f"ModelConfig.dilation must be >= 1, got {self.dilation}")
         if not 0.0 < self.overlap_ratio <= 1.0:
             raise ValueError(f"ModelConfig.overlap_ratio must be in (0, 1], got {self.overlap_ratio}")
         self.agnn_dims = tuple(int(d) for d in self.agnn_dims)
