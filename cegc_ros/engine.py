@@ -306,7 +306,8 @@ class Registrar:
             c = m.correspondences
             compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses,
                                          explore_seeds=eng.explore_seeds, free_space=eng.free_space,
-                                         sure_fitness=eng.sure_fitness, sure_seeds=eng.sure_seeds)
+                                         sure_fitness=eng.sure_fitness, sure_seeds=eng.sure_seeds,
+                                         sure_ambiguity=eng.sure_ambiguity)
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
                                      (src_m, tgt_m), (src, tgt))
             T = np.eye(4)

@@ -13,10 +13,11 @@ the paper:
    then non-maximum suppression in the source (a seed beats every correspondence within
    ``nms_radius`` of its source point); at most ``seed_ratio`` x K seeds. With
    ``sure_seeds`` > 0 and verification on, steps 3-5 first run on that many of the strongest
-   seeds alone, and on the rest only when that choice's fitness is below ``sure_fitness``: a
-   clean high-overlap pair is decided by its first few seeds, and a pair that is not sure gets
-   every seed as before (docs/pipeline.md). When the choice of
-   step 5 from these has a fitness below ``sure_fitness``, a second pass adds
+   seeds alone, and on the rest only when that choice is not sure: its fitness is below
+   ``sure_fitness`` and it is not unambiguous either (its ambiguity, step 5, above
+   ``sure_ambiguity``, or its fitness below ``sure_min_fitness``). A clean high-overlap pair is
+   decided by its first few seeds, and a pair that is not sure gets every seed as before
+   (docs/pipeline.md). When the choice of step 5 from these is not sure, a second pass adds
    ``explore_seeds`` drawn at random among the other correspondences (seeded by K) and
    verifies all hypotheses again, with the free-space check: at low overlap the spectral score
    gathers on the largest consistent cluster, often a wrong one (floor on floor), and 59% of
@@ -93,6 +94,8 @@ class CompatibilityConfig:
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
     sure_fitness: float = 1.01        # second pass (exploring seeds, free space) below this fitness of the first choice
+    sure_ambiguity: float = -1.0      # ... unless the choice's ambiguity is at most this (and its fitness >= sure_min_fitness)
+    sure_min_fitness: float = 0.3
     sure_seeds: int = 0               # first try only this many of the strongest seeds; the rest when not sure (0: all)
 
 
@@ -415,12 +418,21 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     if verifying:
         explore = cfg.explore_seeds > 0
         known: dict[int, float] = {}
+        source = np.asarray(clouds[0], np.float64)
+
+        def unsure(fit: float, top: np.ndarray, rank: np.ndarray) -> bool:
+            """Whether the choice needs more hypotheses: its fitness is below sure_fitness and
+            it is not an unambiguous (ambiguity <= sure_ambiguity) fit one either."""
+            if fit >= cfg.sure_fitness:
+                return False
+            return not (fit >= cfg.sure_min_fitness and cfg.sure_ambiguity >= 0
+                        and ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr) <= cfg.sure_ambiguity)
         best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
-        if tried < len(seeds) and fit < cfg.sure_fitness:
+        if tried < len(seeds) and unsure(fit, top, rank):
             # the strongest seeds left the pair unsure: the rest of the spectral seeds
             R, t, res, total = _more_hypotheses((R, t, res, total), hard, seeds[tried:], src, tgt, w, thr, cfg)
             best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
-        if explore and fit < cfg.sure_fitness:
+        if explore and unsure(fit, top, rank):
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
             # with the free-space check
             rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
@@ -432,7 +444,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
             best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, visibility, known)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
-        rivalry = ambiguity(R[top], t[top], rank, np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
+        rivalry = ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
     Rb, tb, rb = R[best], t[best], res[best]
 
     # 6. refinement on the inliers with robust weights.

@@ -266,6 +266,45 @@ def test_sure_seeds_build_every_seed_when_the_first_choice_is_not_sure(monkeypat
     np.testing.assert_array_equal(split.inliers, full.inliers)
 
 
+def test_an_unambiguous_first_choice_is_sure_below_sure_fitness(monkeypatch):
+    """The half-seen cloud above (fitness ~0.5 < 0.85): with sure_ambiguity, the 16 strongest
+    seeds decide when no distinct alignment among their hypotheses comes within it, with the
+    pose and inliers of building every seed; an ambiguous first choice (the half-turn
+    symmetric scene below) still gets every seed."""
+    from dataclasses import replace
+    src, tgt, R, t, truth = correspondences(1500, 0.1, seed=4)
+    cloud_t = np.concatenate([(src @ R.T + t)[:750], np.random.default_rng(4).uniform(-2, 2, (750, 3))])
+    calls = _seeds_built(monkeypatch)
+    cfg = CompatibilityConfig(verify=50, sure_seeds=16, sure_fitness=0.85, sure_ambiguity=0.5)
+    full = estimate_compatibility(src, tgt, np.ones(1500), 0.05, CompatibilityConfig(verify=50),
+                                  clouds=(src, cloud_t))
+    calls.clear()
+    quick = estimate_compatibility(src, tgt, np.ones(1500), 0.05, cfg, clouds=(src, cloud_t))
+    assert calls == [16] and quick.ambiguity <= 0.5
+    assert rotation_error_deg(full.R, quick.R) < 1e-3 and np.linalg.norm(full.t - quick.t) < 1e-5
+    np.testing.assert_array_equal(quick.inliers, full.inliers)
+    # the fitness floor: above every fitness here, so the first choice is never sure
+    calls.clear()
+    estimate_compatibility(src, tgt, np.ones(1500), 0.05,
+                           CompatibilityConfig(verify=50, sure_seeds=16, sure_fitness=0.85, sure_ambiguity=0.5,
+                                               sure_min_fitness=0.8), clouds=(src, cloud_t))
+    assert calls == [16, 184]
+    # a scene symmetric under a half turn: two alignments explain it alike (and fully, so the
+    # fitness rule is switched off here), never sure by ambiguity
+    rng = np.random.default_rng(3)
+    half = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    base = rng.uniform(-2, 2, (750, 3)) + [2.5, 0, 0]
+    sym = np.concatenate([base, base @ half.T])
+    source = sym.copy()
+    i, j = rng.choice(1500, 200, replace=False), rng.choice(1500, 200, replace=False)
+    noise = rng.choice(1500, 600)
+    s2 = np.concatenate([source[i], source[j], source[noise]])
+    t2 = np.concatenate([sym[i], sym[j] @ half.T, rng.uniform(-4, 4, (600, 3))])
+    calls.clear()
+    amb = estimate_compatibility(s2, t2, np.ones(len(s2)), 0.05, replace(cfg, sure_fitness=1.01), clouds=(source, sym))
+    assert calls[0] == 16 and len(calls) > 1 and amb.ambiguity > 0.9
+
+
 def test_ambiguity_is_the_best_distinct_rivals_score_over_the_answers():
     """Poses that put the source points within the distance of the best one's are its own
     variants, not rivals; the best of the others sets the ratio; none: 0."""
