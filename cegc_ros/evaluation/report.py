@@ -105,6 +105,7 @@ def pairs_rows(pairs: Sequence[EvalPair], outcomes: dict[str, list[Outcome]]) ->
             status = "exception" if o.raised else ("ok" if o.valid else "invalid")
             row: dict[str, Any] = {"pair_id": p.pair_id, "method": m, "status": status,
                                    "reason": o.reason, "fitness": round(o.fitness, 6),
+                                   "ambiguity": round(o.ambiguity, 6),
                                    "latency_ms": round(1000 * o.latency_s, 3)}
             if p.T_gt is not None:
                 e = metrics.pair_errors(p.T_gt, o.T if o.T is not None else np.eye(4))

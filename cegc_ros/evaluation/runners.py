@@ -87,8 +87,11 @@ def run_method(method: str, runner: Runner, pair: EvalPair) -> Outcome:
     except Exception as err:  # noqa: BLE001 - any failure of a method is a scored failure
         return Outcome(method, pair.pair_id, None, False, True, f"{type(err).__name__}: {err}",
                        0.0, time.perf_counter() - t0)
+    latency = time.perf_counter() - t0
+    last = getattr(runner, "last", None)      # a CegcRunner's RegistrationResult of this pair
     return Outcome(method, pair.pair_id, np.asarray(T, np.float64), bool(valid), False,
-                   str(reason), float(fitness), time.perf_counter() - t0)
+                   str(reason), float(fitness), latency,
+                   float(last.ambiguity) if last is not None else float("nan"))
 
 
 def run_offline(pairs: Sequence[EvalPair], runners: dict[str, Runner],
