@@ -111,12 +111,13 @@ class EngineConfig:
         "verified again with the free-space check. Above 1: always. 0.85 changes no validation "
         "result against always and spares clean high-overlap pairs the extra ~40 ms "
         "(docs/pipeline.md).", 0.0, 1.01))
-    sure_ambiguity: float = field(default=0.5, metadata=_meta(
+    sure_ambiguity: float = field(default=0.3, metadata=_meta(
         "The estimator's first choice is also kept, below sure_fitness, when it is unambiguous: "
         "no distinct alignment among its hypotheses scores above this fraction of its score "
-        "(its ambiguity) and its fitness is at least 0.3. Below 0 never. 0.5 changes no "
-        "synthetic validation result against -1 and spares a third of those pairs the exploring "
-        "pass (docs/pipeline.md). See cegc_ros/estimator.py.", -1.0, 1.0))
+        "(its ambiguity) and its fitness is at least 0.3. Below 0 never. 0.3 changes no "
+        "synthetic validation or test-bag result against -1 and spares a fifth of the "
+        "validation pairs the exploring pass (docs/pipeline.md). See cegc_ros/estimator.py.",
+        -1.0, 1.0))
     sure_seeds: int = field(default=16, metadata=_meta(
         "The estimator first builds hypotheses from this many of its strongest spectral seeds "
         "and builds the rest only when the choice among those has a fitness below "
