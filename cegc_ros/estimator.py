@@ -420,19 +420,22 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
         known: dict[int, float] = {}
         source = np.asarray(clouds[0], np.float64)
 
-        def unsure(fit: float, top: np.ndarray, rank: np.ndarray) -> bool:
+        def verified(vis: tuple[np.ndarray, np.ndarray] | None) -> tuple[int, np.ndarray, float, float]:
+            """_verify's choice, the verified ones and the choice's fitness, with its ambiguity."""
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known)
+            return best, top, fit, ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
+
+        def unsure(fit: float, rivalry: float) -> bool:
             """Whether the choice needs more hypotheses: its fitness is below sure_fitness and
             it is not an unambiguous (ambiguity <= sure_ambiguity) fit one either."""
-            if fit >= cfg.sure_fitness:
-                return False
-            return not (fit >= cfg.sure_min_fitness and cfg.sure_ambiguity >= 0
-                        and ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr) <= cfg.sure_ambiguity)
-        best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
-        if tried < len(seeds) and unsure(fit, top, rank):
+            return fit < cfg.sure_fitness and not (fit >= cfg.sure_min_fitness and 0 <= cfg.sure_ambiguity
+                                                   and rivalry <= cfg.sure_ambiguity)
+        best, top, fit, rivalry = verified(None if explore else visibility)
+        if tried < len(seeds) and unsure(fit, rivalry):
             # the strongest seeds left the pair unsure: the rest of the spectral seeds
             R, t, res, total = _more_hypotheses((R, t, res, total), hard, seeds[tried:], src, tgt, w, thr, cfg)
-            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, None if explore else visibility, known)
-        if explore and unsure(fit, top, rank):
+            best, top, fit, rivalry = verified(None if explore else visibility)
+        if explore and unsure(fit, rivalry):
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
             # with the free-space check
             rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
@@ -441,10 +444,9 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                                                        replace=False)
                 R, t, res, total = _more_hypotheses((R, t, res, total), hard, rest[np.sort(pick)], src, tgt, w,
                                                     thr, cfg)
-            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, visibility, known)
+            best, top, fit, rivalry = verified(visibility)
         hypotheses = np.tile(np.eye(4), (len(top), 1, 1))
         hypotheses[:, :3, :3], hypotheses[:, :3, 3] = R[top], t[top]
-        rivalry = ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
     Rb, tb, rb = R[best], t[best], res[best]
 
     # 6. refinement on the inliers with robust weights.

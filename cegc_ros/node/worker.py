@@ -151,11 +151,11 @@ class RegistrationWorker:
         if not result.valid:
             raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
         self.stats.last_fitness = float(result.fitness)
+        self.stats.last_ambiguity = float(result.ambiguity)
         min_fitness = cfg["output"].min_fitness
         if result.fitness < min_fitness:
             raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
                            f"output.min_fitness {min_fitness:.3f}")
-        self.stats.last_ambiguity = float(result.ambiguity)
         max_ambiguity = cfg["output"].max_ambiguity
         if result.ambiguity > max_ambiguity:
             raise Rejected("ambiguous", f"ambiguity {result.ambiguity:.3f} > "
