@@ -291,6 +291,12 @@ class SequentialConfig:
         "this share of the cloud's voxels lies within inlier_distance of the keyframe; below it "
         "ICP hands over to global registration, and a rejected global answer skips the cloud "
         "(counted; the odometry is unchanged).", 0.0, 1.0))
+    max_ambiguity: float = field(default=1.0, metadata=_meta(
+        "A global registration whose ambiguity (as output.max_ambiguity: how close the best "
+        "distinct alignment came to the answer, 0 no rival, 1 a tie) is above this is not "
+        "accepted: the cloud is skipped (counted) instead of jumping the odometry to one of two "
+        "alignments the geometry cannot tell apart. 1 (default) accepts every answer that "
+        "passes min_fitness.", 0.0, 1.0))
     gap_intervals: float = field(default=3.0, metadata=_meta(
         "A cloud arriving more than this many frame intervals (the median of the recent ones) "
         "after the last registered cloud is registered globally first, and tracked only if "

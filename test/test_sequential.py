@@ -79,6 +79,7 @@ class Result:
     T_target_source: np.ndarray
     valid: bool
     reason: str = ""
+    ambiguity: float = 0.0
 
 
 def straight_run(n: int, step: float = 0.1, yaw_step: float = 2.0) -> list[np.ndarray]:
@@ -295,6 +296,32 @@ def test_global_recovery_after_a_jump_and_odometry_continues():
     for r, T in zip(results, poses):
         truth = np.linalg.inv(poses[0]) @ T
         assert np.linalg.norm(r.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
+
+
+@pytest.mark.parametrize("ambiguity", [0.95, 0.5])
+def test_an_ambiguous_global_answer_is_refused(ambiguity):
+    """The right pose, but with a rival the verification nearly preferred: above
+    sequential.max_ambiguity the odometry skips the cloud rather than jump on it."""
+    w = World()
+    poses = straight_run(6) + [pose(50.0, (1.2, 0.6, 1.0))]
+
+    def with_a_rival(source, target):
+        return dataclasses.replace(w.oracle(source, target), ambiguity=ambiguity)
+
+    odo = KeyframeOdometry(cfg(keyframe_max_translation=100.0, keyframe_max_rotation=180.0,
+                               keyframe_min_overlap=0.3, max_ambiguity=0.8), with_a_rival)
+    results = [odo.feed(k * S // 10, w.cloud(T)) for k, T in enumerate(poses)]
+    last = results[-1]
+    assert w.calls == 1
+    if ambiguity > 0.8:
+        assert last.method == "none" and not last.accepted and last.T_odom_cloud is None
+        assert "global registration ambiguous: 0.95 > sequential.max_ambiguity 0.80" in last.reason
+        assert odo.stats.rejected == 1 and odo.stats.recoveries == 0
+    else:
+        assert last.method == "global" and last.accepted, last.reason
+        truth = np.linalg.inv(poses[0]) @ poses[-1]
+        assert np.linalg.norm(last.T_odom_cloud[:3, 3] - truth[:3, 3]) < 0.01
+        assert odo.stats.rejected == 0 and odo.stats.recoveries == 1
 
 
 def test_rejected_cloud_leaves_the_odometry_untouched():

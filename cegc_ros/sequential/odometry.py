@@ -12,8 +12,9 @@ first keyframe):
 3. recover (only when tracking is not accepted: fast motion, a kidnapped sensor): first the
    last accepted cloud, when newer, becomes the keyframe and tracking is tried against it (the
    freshest view shares the most with this one); then the injected global registration
-   (``Registrar.register`` or any callable with its signature) against the keyframe, refined
-   and checked by the same ICP and fitness test. After a gap (dropped frames: more than
+   (``Registrar.register`` or any callable with its signature) against the keyframe, refused
+   when its ``ambiguity`` is above ``max_ambiguity``, else refined and checked by the same ICP
+   and fitness test. After a gap (dropped frames: more than
    ``gap_intervals`` frame intervals since the last accepted cloud) the constant-velocity
    guess is not trusted: global registration comes first, tracking only if it fails;
 4. chain: ``T_odom_cloud = T_odom_keyframe @ T_keyframe_cloud``, covariance propagated along the
@@ -425,6 +426,12 @@ class KeyframeOdometry:
         if not getattr(result, "valid", False):
             timings["global"] = time.perf_counter() - t1
             notes.append(f"global registration invalid: {result.reason}")
+            return _Registration("none", tracked, result, "; ".join(notes))
+        ambiguity = float(getattr(result, "ambiguity", 0.0))
+        if ambiguity > cfg.max_ambiguity:
+            timings["global"] = time.perf_counter() - t1
+            notes.append(f"global registration ambiguous: {ambiguity:.2f} > "
+                         f"sequential.max_ambiguity {cfg.max_ambiguity:.2f}")
             return _Registration("none", tracked, result, "; ".join(notes))
         # The engine's answer anchors the ICP as the prediction does when tracking: directions
         # the geometry leaves free keep the engine's (feature-based) value instead of sliding
