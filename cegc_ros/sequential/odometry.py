@@ -423,15 +423,16 @@ class KeyframeOdometry:
             timings["global"] = time.perf_counter() - t1
             notes.append(f"global registration: {err}")
             return _Registration("none", tracked, reason="; ".join(notes))
-        if not getattr(result, "valid", False):
-            timings["global"] = time.perf_counter() - t1
-            notes.append(f"global registration invalid: {result.reason}")
-            return _Registration("none", tracked, result, "; ".join(notes))
         ambiguity = float(getattr(result, "ambiguity", 0.0))
-        if ambiguity > cfg.max_ambiguity:
+        refusal = ""
+        if not getattr(result, "valid", False):
+            refusal = f"global registration invalid: {result.reason}"
+        elif ambiguity > cfg.max_ambiguity:
+            refusal = (f"global registration ambiguous: {ambiguity:.2f} > "
+                       f"sequential.max_ambiguity {cfg.max_ambiguity:.2f}")
+        if refusal:
             timings["global"] = time.perf_counter() - t1
-            notes.append(f"global registration ambiguous: {ambiguity:.2f} > "
-                         f"sequential.max_ambiguity {cfg.max_ambiguity:.2f}")
+            notes.append(refusal)
             return _Registration("none", tracked, result, "; ".join(notes))
         # The engine's answer anchors the ICP as the prediction does when tracking: directions
         # the geometry leaves free keep the engine's (feature-based) value instead of sliding
