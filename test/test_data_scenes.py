@@ -19,7 +19,7 @@ def _wall_room(distance: float = 2.0) -> scenes.Room:
 
 def _looking_along_x() -> np.ndarray:
     T = np.eye(4)
-    T[:3, :3] = scenes._camera_rotation(np.zeros(1), np.zeros(1), np.zeros(1))[0]
+    T[:3, :3] = scenes.camera_rotation(np.zeros(1), np.zeros(1), np.zeros(1))[0]
     return T
 
 
@@ -48,7 +48,7 @@ def test_kinect_noise_level_and_range():
 
 def test_grazing_surfaces_drop_out():
     T = np.eye(4)
-    T[:3, :3] = scenes._camera_rotation(np.zeros(1), np.radians([-5.0]), np.zeros(1))[0]
+    T[:3, :3] = scenes.camera_rotation(np.zeros(1), np.radians([-5.0]), np.zeros(1))[0]
     floor = scenes._MeshBuilder()
     floor.box((40.0, 40.0, 0.01), (0.0, 0.0, -0.305))  # floor 0.3 m below the camera
     v, t = floor.arrays()

@@ -22,7 +22,7 @@ def _wall_at(x: float) -> scenes.Room:
 
 def _camera_along_x(n: int = 1) -> np.ndarray:
     T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = scenes._camera_rotation(np.zeros(n), np.zeros(n), np.zeros(n))
+    T[:, :3, :3] = scenes.camera_rotation(np.zeros(n), np.zeros(n), np.zeros(n))
     return T
 
 

@@ -491,13 +491,15 @@ def camera_trajectory(room: Room, num_frames: int, fps: float = 30.0) -> np.ndar
     ang += rng.normal(0, np.radians(0.15), ang.shape)
     p = np.clip(p, lo - 0.2, hi + 0.2)
     poses = np.tile(np.eye(4), (num_frames, 1, 1))
-    poses[:, :3, :3] = _camera_rotation(ang[:, 0], ang[:, 1], ang[:, 2])
+    poses[:, :3, :3] = camera_rotation(ang[:, 0], ang[:, 1], ang[:, 2])
     poses[:, :3, 3] = p
     return poses
 
 
-def _camera_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """R_world_camera (F, 3, 3) for an optical camera (x right, y down, z forward), z-up world."""
+def camera_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """R_world_camera (F, 3, 3) of an optical camera (x right, y down, z forward) in the z-up
+    world, looking along ``yaw`` (about z), tilted up by ``pitch``, rolled by ``roll`` (each (F,),
+    radians). Shared by the fragment, different-view and sequence generators."""
     fwd = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], -1)
     right = np.cross(fwd, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right, axis=-1, keepdims=True)

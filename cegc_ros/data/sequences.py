@@ -74,18 +74,6 @@ def backproject(depth: np.ndarray, u: np.ndarray, v: np.ndarray,
     return np.stack([x, y, z], axis=1).astype(np.float32)
 
 
-def _optical_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """R_world_camera (F, 3, 3) of an optical camera (x right, y down, z forward) in the z-up
-    world, looking along ``yaw`` (about z), tilted up by ``pitch``, rolled by ``roll``."""
-    fwd = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], -1)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right, axis=-1, keepdims=True)
-    down = np.cross(fwd, right)
-    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
-    right, down = c * right + s * down, -s * right + c * down
-    return np.stack([right, down, fwd], -1)
-
-
 def robot_trajectory(room: scenes.Room, num_frames: int, fps: float = 30.0, speed: float = 0.4,
                      height: float = 1.2, pitch_deg: float = -20.0, clearance: float = 0.3,
                      ) -> np.ndarray:
@@ -122,7 +110,7 @@ def robot_trajectory(room: scenes.Room, num_frames: int, fps: float = 30.0, spee
     pitch = np.full(num_frames, np.radians(pitch_deg)) + np.radians(3.0) * np.sin(t)
     roll = np.radians(1.0) * np.sin(0.7 * t)
     poses = np.tile(np.eye(4), (num_frames, 1, 1))
-    poses[:, :3, :3] = _optical_rotation(yaw, pitch, roll)
+    poses[:, :3, :3] = scenes.camera_rotation(yaw, pitch, roll)
     poses[:, :3, 3] = pos
     return poses
 

@@ -41,7 +41,7 @@ from cegc_ros.data import splits
 from cegc_ros.data.codec import dequantise, quantise
 from cegc_ros.data.protocols import Pair, random_rotation_euler, transform_points
 from cegc_ros.data.rooms import RichRoom, get_rich_room
-from cegc_ros.data.scenes import _camera_rotation
+from cegc_ros.data.scenes import camera_rotation
 from cegc_ros.data.sensors import SENSORS, KinectSensor, LidarSensor, get_sensor
 
 KINDS = ("views", "copy")
@@ -186,7 +186,7 @@ def kinect_path(room: RichRoom, rng: np.random.Generator, focus: np.ndarray,
     pitch = pitch0 + np.radians(rng.normal(0, 6)) * t + rng.normal(0, np.radians(0.2), len(t))
     roll = np.radians(rng.normal(0, 3)) + rng.normal(0, np.radians(0.2), len(t))
     poses = np.tile(np.eye(4), (len(t), 1, 1))
-    poses[:, :3, :3] = _camera_rotation(yaw, pitch, roll)
+    poses[:, :3, :3] = camera_rotation(yaw, pitch, roll)
     poses[:, :3, 3] = pos
     return poses
 
