@@ -31,6 +31,7 @@ class Result:
     fitness: float
     valid: bool
     reason: str = ""
+    refined: str = "none"
     ambiguity: float = 0.0
     timings: dict = field(default_factory=dict)
     checksum: float = 0.0         # sum of every coordinate received (data integrity checks)

@@ -10,12 +10,12 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 import ros_helpers as rh
 import yaml
+from fake_engines import T_KNOWN, Result
 
 from cegc_ros.config import InputConfig, OutputConfig, PreprocessConfig, SyncConfig
 from cegc_ros.node import (
@@ -32,26 +32,6 @@ from cegc_ros.node.engine_process import InlineEngine
 rclpy = pytest.importorskip("rclpy")
 
 SEC = 10**9
-T_KNOWN = np.array([[0.0, -1.0, 0.0, 0.5], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, 1.0, 0.1],
-                    [0.0, 0.0, 0.0, 1.0]])
-
-
-@dataclass
-class FakeResult:
-    T_target_source: np.ndarray
-    source_points: np.ndarray
-    target_points: np.ndarray
-    source_overlap: np.ndarray
-    target_overlap: np.ndarray
-    correspondences: np.ndarray
-    weights: np.ndarray
-    covariance: np.ndarray
-    fitness: float
-    valid: bool
-    reason: str
-    refined: str = "none"
-    ambiguity: float = 0.0
-    timings: dict = field(default_factory=dict)
 
 
 class FakeRegistrar:
@@ -76,7 +56,7 @@ class FakeRegistrar:
     def warm_up(self) -> float:
         return 0.0                                   # nothing to compile
 
-    def register(self, src: np.ndarray, tgt: np.ndarray) -> FakeResult:
+    def register(self, src: np.ndarray, tgt: np.ndarray) -> Result:
         assert src.dtype == np.float32 and src.shape[1] == 3
         self.calls.append((len(src), len(tgt)))
         time.sleep(self.delay)
@@ -89,7 +69,7 @@ class FakeRegistrar:
         m = min(len(s), len(t))
         corr = np.stack([np.arange(m), np.arange(m)], 1).astype(np.int64)
         w = np.linspace(0, 1, m, dtype=np.float32)
-        return FakeResult(T_KNOWN, s, t, so, to, corr, w, np.eye(6) * 1e-4,
+        return Result(T_KNOWN, s, t, so, to, corr, w, np.eye(6) * 1e-4,
                           (len(src) % 100) / 100, len(src) != 99,
                           "" if len(src) != 99 else "degenerate (test)", ambiguity=(len(tgt) % 100) / 100)
 
