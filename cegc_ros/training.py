@@ -43,7 +43,14 @@ from .geometry import prepare_pair
 from .matching import fpfh_neighbours
 from .metrics import rotation_error_deg
 from .model import CEGC, ModelConfig
-from .model.losses import CandidateLossConfig, LossConfig, candidate_loss, cegc_loss
+from .model.losses import (
+    CandidateLossConfig,
+    DistillConfig,
+    LossConfig,
+    candidate_loss,
+    cegc_loss,
+    distill_loss,
+)
 
 OBJECTIVES = ("candidates", "paper")
 
@@ -112,6 +119,7 @@ class Config:
     candidate_loss: CandidateLossConfig = field(default_factory=CandidateLossConfig)
     data: DataConfig = field(default_factory=DataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    distill: DistillConfig = field(default_factory=DistillConfig)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Config:
@@ -122,7 +130,7 @@ class Config:
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any]) -> Config:
-        unknown = set(raw) - {"model", "loss", "candidate_loss", "data", "train"}
+        unknown = set(raw) - {"model", "loss", "candidate_loss", "data", "train", "distill"}
         if unknown:
             raise ValueError(f"unknown config sections: {sorted(unknown)}")
         tr = dict(raw.get("train", {}))
@@ -130,15 +138,17 @@ class Config:
             tr["stages"] = [Stage(**s) for s in tr["stages"]]
         cfg = cls(ModelConfig.from_dict(raw.get("model", {})), LossConfig(**raw.get("loss", {})),
                   CandidateLossConfig(**raw.get("candidate_loss", {})), DataConfig(**raw.get("data", {})),
-                  TrainConfig(**tr))
+                  TrainConfig(**tr), DistillConfig(**raw.get("distill", {})))
         if cfg.train.objective not in OBJECTIVES:
             raise ValueError(f"train.objective must be one of {OBJECTIVES}, got {cfg.train.objective!r}")
+        if cfg.distill.teacher and cfg.train.objective != "candidates":
+            raise ValueError("distill.teacher needs train.objective candidates (the engine's path)")
         return cfg
 
     def to_dict(self) -> dict[str, Any]:
         return {"model": self.model.to_dict(), "loss": asdict(self.loss),
                 "candidate_loss": asdict(self.candidate_loss), "data": asdict(self.data),
-                "train": asdict(self.train)}
+                "train": asdict(self.train), "distill": asdict(self.distill)}
 
 
 class PairSampler:
@@ -304,10 +314,21 @@ class _CandidatePath(torch.nn.Module):
         return self.model.score_candidates(*args, **kwargs)
 
 
-def _loss(cfg: Config, out: Any, b: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+def _loss(cfg: Config, out: Any, b: dict[str, torch.Tensor], teacher: CEGC | None = None
+          ) -> tuple[torch.Tensor, dict[str, float]]:
+    """The objective's loss; with a ``teacher``, plus ``distill.weight`` x :func:`distill_loss`
+    against the teacher's output on the same (device-side) batch ``b``."""
     if cfg.train.objective == "paper":
         return cegc_loss(out, b["src"], b["tgt"], b["R"], b["t"], cfg.loss, cfg.model.match_temperature)
-    return candidate_loss(out, b["src"], b["tgt"], b["R"], b["t"], cfg.candidate_loss)
+    loss, parts = candidate_loss(out, b["src"], b["tgt"], b["R"], b["t"], cfg.candidate_loss)
+    if teacher is not None:
+        with torch.no_grad():
+            ref = teacher.score_candidates(b["src"], b["tgt"], b["src_n"], b["tgt_n"], b["src_d"], b["tgt_d"],
+                                           k_learned=cfg.train.learned_candidates, extra=b["extra"])
+        l_kd, kd = distill_loss(out, ref, cfg.distill.temperature)
+        loss = loss + cfg.distill.weight * l_kd
+        parts = {**parts, **kd, "loss": float(loss.detach())}
+    return loss, parts
 
 
 class Trainer:
@@ -344,6 +365,7 @@ class Trainer:
         self.out = Path(cfg.train.out_dir)
         if resume:
             self._resume(Path(resume))
+        self.teacher = self._teacher(fresh=not resume) if cfg.distill.teacher else None
         features = cfg.model.features()
         from .data.pair_cache import PairCache
         pairs = PairCache(cfg.data.pair_cache) if cfg.data.pair_cache else None
@@ -419,6 +441,26 @@ class Trainer:
         self.model.load_state_dict(kept, strict=True)
         return extra
 
+    def _teacher(self, fresh: bool) -> CEGC:
+        """The frozen teacher of ``distill.teacher``; at a fresh start with
+        ``distill.init_from_teacher``, the student takes every tensor of the teacher whose name
+        and shape it shares. ValueError when the teacher was trained on other input features
+        (each pair is prepared once, with the student's)."""
+        from .engine import load_checkpoint
+        teacher, _ = load_checkpoint(self.cfg.distill.teacher, self.device)
+        if teacher.cfg.features() != self.cfg.model.features() or teacher.cfg.variant != self.cfg.model.variant:
+            raise ValueError(f"distill.teacher {self.cfg.distill.teacher}: trained on other input "
+                             f"features than model ({teacher.cfg.features()} against "
+                             f"{self.cfg.model.features()})")
+        teacher.requires_grad_(False).eval()
+        if fresh and self.cfg.distill.init_from_teacher:
+            own = self.model.state_dict()
+            shared = {k: v for k, v in teacher.state_dict().items() if k in own and own[k].shape == v.shape}
+            self.model.load_state_dict(shared, strict=False)
+            self.warm_start = {**self.warm_start, "from_teacher": self.cfg.distill.teacher,
+                               "teacher_tensors": len(shared)}
+        return teacher
+
     def _val_key(self) -> str:
         """What the validation set is made of: best scores compare only within one key."""
         d = self.cfg.data
@@ -469,7 +511,7 @@ class Trainer:
         log_path = self.out / "metrics.csv"
         fields = ["step", "elapsed_min", "points", "max_angle", "min_overlap", "loss", "l_overlap", "l_pose",
                   "l_corr", "l_conf", "l_inlier", "l_desc", "l_row", "l_rank", "match_acc", "cand_recall",
-                  "top100_precision", "inlier_frac", "overlap_acc", "val_recall", "val_rre_median",
+                  "top100_precision", "inlier_frac", "overlap_acc", "l_distill", "val_recall", "val_rre_median",
                   "val_rre_mean", "val_match_acc", "val_top100_precision"]
         new_log = not log_path.exists()
         if not new_log:     # a resumed run appends under the columns its log was started with
@@ -506,7 +548,7 @@ class Trainer:
                 b = next(batches)
                 with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=bf16):
                     out, bb = _forward(self.net, b, self.device, cfg)
-                loss, parts = _loss(self.cfg, out, bb)
+                loss, parts = _loss(self.cfg, out, bb, self.teacher)
                 self.opt.zero_grad(set_to_none=True)
                 if torch.isfinite(loss):
                     loss.backward()

@@ -498,3 +498,60 @@ def test_descriptor_positives_within_the_threshold_count_as_partners():
     assert l_desc(eye, "within") <= l_desc(eye, "nearest") < 0.1
     with pytest.raises(ValueError, match="descriptor_positives"):
         CandidateLossConfig(descriptor_positives="all")
+
+
+def test_distill_loss_matches_the_student_to_the_teacher_where_their_candidates_agree():
+    """The similarity term is the KL between the two clouds' feature-similarity rows (0 for the
+    teacher's own features); the score term pairs candidates by target index, not by position,
+    and ignores a student candidate the teacher did not score: at the teacher's logits of the
+    shared candidates every score's gradient is 0, and moving the unshared one costs nothing."""
+    from cegc_ros.model.cegc import CandidateOutput
+    from cegc_ros.model.losses import distill_loss
+    torch.manual_seed(0)
+    N, M = 4, 6
+    fx, fy = torch.randn(1, N, 8), torch.randn(1, M, 8)
+    t_cand = torch.tensor([[[2, 0, 5]] * N])
+    t_scores = torch.randn(1, N, 3)
+    teacher = CandidateOutput(torch.randn(1, N), torch.randn(1, M), t_cand, t_scores, torch.randn(1, N), fx, fy)
+    s_cand = torch.tensor([[[0, 1, 2]] * N])                       # 0 and 2 shared (teacher's 2nd and 1st)
+    s_scores = torch.stack([t_scores[..., 1], torch.full((1, N), 7.0), t_scores[..., 0]], -1).requires_grad_()
+    student = CandidateOutput(teacher.src_overlap_logits, teacher.tgt_overlap_logits, s_cand, s_scores,
+                              teacher.conf_logits, fx, fy)
+    total, parts = distill_loss(student, teacher, 0.1)
+    total.backward()
+    assert torch.allclose(s_scores.grad, torch.zeros_like(s_scores), atol=1e-7)
+    assert parts["distill_shared"] == pytest.approx(2 / 3)
+    other = CandidateOutput(student.src_overlap_logits, student.tgt_overlap_logits, s_cand, s_scores.detach(),
+                            student.conf_logits, torch.randn(1, N, 8), fy)
+    assert distill_loss(other, teacher, 0.1)[0] > total + 0.05             # other features: a positive KL
+
+
+def test_a_distilled_student_starts_from_the_teachers_shared_tensors_and_leaves_it_frozen(tmp_path):
+    """A narrower student (feat_dim 16 against the teacher's 32) takes the teacher's AGNN layers
+    (same names and shapes) at a fresh start, trains with the distillation term logged, and the
+    teacher does not change; a teacher trained on other input features is refused."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC
+    frags = fragments(2)
+    teacher_cfg = tiny_config(tmp_path / "t", max_steps=1)
+    torch.manual_seed(1)
+    teacher = CEGC(teacher_cfg.model)
+    save_checkpoint(tmp_path / "teacher.pt", teacher, {"step": 10})
+    raw = tiny_config(tmp_path / "student", max_steps=2).to_dict()
+    raw["model"]["feat_dim"] = 16
+    raw["distill"] = {"teacher": str(tmp_path / "teacher.pt"), "weight": 1.0}
+    trainer = Trainer(Config.from_dict(raw), device="cpu", fragments=frags, val_fragments=frags, progress=False)
+    own = trainer.model.state_dict()
+    theirs = teacher.state_dict()
+    agnn_layers = [k for k in own if k.startswith("agnn.layers.")]
+    assert agnn_layers and all(torch.equal(own[k], theirs[k]) for k in agnn_layers)
+    assert own["agnn.head.0.weight"].shape != theirs["agnn.head.0.weight"].shape
+    assert trainer.warm_start["teacher_tensors"] >= len(agnn_layers)
+    trainer.run()
+    with open(tmp_path / "student" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert all(np.isfinite(float(r["l_distill"])) and float(r["l_distill"]) > 0 for r in rows)
+    assert all(torch.equal(v, theirs[k]) for k, v in trainer.teacher.state_dict().items())
+    raw["model"]["fpfh_radius"] = 0.3
+    with pytest.raises(ValueError, match="other input features"):
+        Trainer(Config.from_dict(raw), device="cpu", fragments=frags, val_fragments=frags, progress=False)

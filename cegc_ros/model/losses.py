@@ -217,3 +217,50 @@ def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:
     per_pair = (margin * pair_w).sum(dim=(1, 2)) / pair_w.sum(dim=(1, 2)).clamp_min(1.0)
     has = (pair_w.sum(dim=(1, 2)) > 0).float()
     return (per_pair * has).sum() / has.sum().clamp_min(1.0)
+
+
+@dataclass
+class DistillConfig:
+    """Distillation (issue: fast everywhere, a smaller network): besides the ground-truth terms, a
+    student learns a frozen teacher's outputs on the same pair (:func:`distill_loss`). The
+    teacher is an engine checkpoint trained with the same input features (the shipped weights).
+    """
+
+    teacher: str = ""            # engine checkpoint of the teacher; "" = no distillation
+    weight: float = 1.0          # of distill_loss's sum
+    temperature: float = 0.1     # of the feature-similarity rows (as nce_temperature)
+    #: at a fresh start (not a resume), copy every teacher tensor whose name and shape the
+    #: student shares (a narrower student: the AGNN's three layers), so it starts from them
+    init_from_teacher: bool = True
+
+
+def distill_loss(student: CandidateOutput, teacher: CandidateOutput, temperature: float
+                 ) -> tuple[Tensor, dict[str, float]]:
+    """The student's :meth:`CEGC.score_candidates` output against the teacher's on the same
+    inputs (the same FPFH candidates appended): HOCE overlap logits and row confidences by
+    BCE against the teacher's probabilities; each source point's feature-similarity row over the
+    target points (softmax at ``temperature``) by KL to the teacher's, so that the student's
+    learned candidates (its nearest targets in feature space) become the teacher's; and the
+    pair scores by BCE against the teacher's, wherever a student candidate is one the teacher
+    scored too (every FPFH candidate, the learned ones the two share)."""
+    def soft_bce(logits: Tensor, target_logits: Tensor) -> Tensor:
+        return F.binary_cross_entropy_with_logits(logits.float(), torch.sigmoid(target_logits.float()))
+
+    l_ov = 0.5 * soft_bce(student.src_overlap_logits, teacher.src_overlap_logits) \
+        + 0.5 * soft_bce(student.tgt_overlap_logits, teacher.tgt_overlap_logits)
+    l_conf = soft_bce(student.conf_logits, teacher.conf_logits)
+
+    def log_rows(out: CandidateOutput) -> Tensor:
+        sim = F.normalize(out.src_features.float(), dim=-1) @ \
+            F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
+        return torch.log_softmax(sim / temperature, dim=-1)                 # (B, N, M)
+    lt = log_rows(teacher)
+    l_sim = (lt.exp() * (lt - log_rows(student))).sum(-1).mean()
+    same = student.candidates.unsqueeze(-1) == teacher.candidates.unsqueeze(-2)   # (B, N, ks, kt)
+    shared = same.any(-1)
+    target = (same.float() * torch.sigmoid(teacher.scores.float()).unsqueeze(-2)).sum(-1) \
+        / same.sum(-1).clamp_min(1)
+    bce = F.binary_cross_entropy_with_logits(student.scores.float(), target, reduction="none")
+    l_score = (bce * shared).sum() / shared.sum().clamp_min(1)
+    total = l_ov + l_conf + l_sim + l_score
+    return total, {"l_distill": float(total.detach()), "distill_shared": float(shared.float().mean())}
