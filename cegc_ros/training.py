@@ -10,6 +10,8 @@ FPFH candidates of :func:`cegc_ros.matching.fpfh_neighbours`) -> forward -> loss
   :func:`cegc_ros.model.losses.candidate_loss` (candidate inlier classification, descriptor
   InfoNCE, overlap BCE, pose loss);
 - ``paper``: the paper's all-pairs forward with :func:`cegc_ros.model.losses.cegc_loss`.
+With a ``distill`` section (candidates only) a frozen teacher checkpoint runs on the same pair
+and :func:`cegc_ros.model.losses.distill_loss` adds its outputs as targets (a smaller student).
 Validation runs the whole engine (cegc_ros/engine.py at its defaults, the model being trained
 inside) on held-out synthetic pairs and keeps ``best.pt`` by registration recall.
 
@@ -38,7 +40,7 @@ import torch
 
 from .bounding import bound_pair
 from .config import EngineConfig, PreprocessConfig
-from .engine import Registrar, save_checkpoint
+from .engine import Registrar, load_checkpoint, save_checkpoint
 from .geometry import prepare_pair
 from .matching import fpfh_neighbours
 from .metrics import rotation_error_deg
@@ -446,7 +448,6 @@ class Trainer:
         ``distill.init_from_teacher``, the student takes every tensor of the teacher whose name
         and shape it shares. ValueError when the teacher was trained on other input features
         (each pair is prepared once, with the student's)."""
-        from .engine import load_checkpoint
         teacher, _ = load_checkpoint(self.cfg.distill.teacher, self.device)
         if teacher.cfg.features() != self.cfg.model.features() or teacher.cfg.variant != self.cfg.model.variant:
             raise ValueError(f"distill.teacher {self.cfg.distill.teacher}: trained on other input "
