@@ -316,17 +316,14 @@ class _CandidatePath(torch.nn.Module):
         return self.model.score_candidates(*args, **kwargs)
 
 
-def _loss(cfg: Config, out: Any, b: dict[str, torch.Tensor], teacher: CEGC | None = None
+def _loss(cfg: Config, out: Any, b: dict[str, torch.Tensor], ref: Any = None
           ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The objective's loss; with a ``teacher``, plus ``distill.weight`` x :func:`distill_loss`
-    against the teacher's output on the same (device-side) batch ``b``."""
+    """The objective's loss; with ``ref``, the teacher's output on the same pair, plus
+    ``distill.weight`` x :func:`distill_loss` against it."""
     if cfg.train.objective == "paper":
         return cegc_loss(out, b["src"], b["tgt"], b["R"], b["t"], cfg.loss, cfg.model.match_temperature)
     loss, parts = candidate_loss(out, b["src"], b["tgt"], b["R"], b["t"], cfg.candidate_loss)
-    if teacher is not None:
-        with torch.no_grad():
-            ref = teacher.score_candidates(b["src"], b["tgt"], b["src_n"], b["tgt_n"], b["src_d"], b["tgt_d"],
-                                           k_learned=cfg.train.learned_candidates, extra=b["extra"])
+    if ref is not None:
         l_kd, kd = distill_loss(out, ref, cfg.distill.temperature)
         loss = loss + cfg.distill.weight * l_kd
         parts = {**parts, **kd, "loss": float(loss.detach())}
@@ -549,7 +546,11 @@ class Trainer:
                 b = next(batches)
                 with torch.autocast(device_type=self.device.split(":")[0], dtype=torch.bfloat16, enabled=bf16):
                     out, bb = _forward(self.net, b, self.device, cfg)
-                loss, parts = _loss(self.cfg, out, bb, self.teacher)
+                ref = None
+                if self.teacher is not None:
+                    with torch.no_grad():
+                        ref, _ = _forward(self.teacher, bb, self.device, cfg)
+                loss, parts = _loss(self.cfg, out, bb, ref)
                 self.opt.zero_grad(set_to_none=True)
                 if torch.isfinite(loss):
                     loss.backward()

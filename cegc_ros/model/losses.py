@@ -54,6 +54,14 @@ def _take(x: Tensor, idx: Tensor) -> Tensor:
     return x.gather(1, idx.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
 
 
+def similarity_log_rows(out: CandidateOutput, temperature: float) -> Tensor:
+    """Each source point's log-softmax over the target points of the cosine similarities of
+    the attention features (what the engine's learned candidates are the top-k of), at
+    ``temperature``: (B, N, M), fp32."""
+    sim = F.normalize(out.src_features.float(), dim=-1) @ F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
+    return torch.log_softmax(sim / temperature, dim=-1)
+
+
 def cegc_loss(out: CEGCOutput, src: Tensor, tgt: Tensor, R_gt: Tensor, t_gt: Tensor,
               cfg: LossConfig, temperature: float) -> tuple[Tensor, dict[str, float]]:
     """Total loss and its parts (floats, for logging). All inputs in the normalised frame;
@@ -155,8 +163,7 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     neg = (1 - inl).sum().clamp_min(1.0)
     bce = F.binary_cross_entropy_with_logits(out.scores.float(), inl, reduction="none")
     l_i = 0.5 * (bce * inl).sum() / pos + 0.5 * (bce * (1 - inl)).sum() / neg
-    sim = F.normalize(out.src_features.float(), dim=-1) @ F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
-    logp = torch.log_softmax(sim / cfg.nce_temperature, dim=-1)
+    logp = similarity_log_rows(out, cfg.nce_temperature)
     if cfg.descriptor_positives == "within":
         with torch.no_grad():     # the nearest always counts, so a row is never empty (finite)
             pos = (d < thr[:, None, None]).scatter(2, partner.unsqueeze(-1), True)
@@ -249,13 +256,8 @@ def distill_loss(student: CandidateOutput, teacher: CandidateOutput, temperature
     l_ov = 0.5 * soft_bce(student.src_overlap_logits, teacher.src_overlap_logits) \
         + 0.5 * soft_bce(student.tgt_overlap_logits, teacher.tgt_overlap_logits)
     l_conf = soft_bce(student.conf_logits, teacher.conf_logits)
-
-    def log_rows(out: CandidateOutput) -> Tensor:
-        sim = F.normalize(out.src_features.float(), dim=-1) @ \
-            F.normalize(out.tgt_features.float(), dim=-1).transpose(1, 2)
-        return torch.log_softmax(sim / temperature, dim=-1)                 # (B, N, M)
-    lt = log_rows(teacher)
-    l_sim = (lt.exp() * (lt - log_rows(student))).sum(-1).mean()
+    lt = similarity_log_rows(teacher, temperature)                        # (B, N, M)
+    l_sim = (lt.exp() * (lt - similarity_log_rows(student, temperature))).sum(-1).mean()
     same = student.candidates.unsqueeze(-1) == teacher.candidates.unsqueeze(-2)   # (B, N, ks, kt)
     shared = same.any(-1)
     target = (same.float() * torch.sigmoid(teacher.scores.float()).unsqueeze(-2)).sum(-1) \
