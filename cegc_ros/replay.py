@@ -236,6 +236,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     from std_srvs.srv import Trigger
 
     from cegc_ros.paths import fastdds_profile as profile_env
+    from cegc_ros.spinning import Spinner
     from msg_adapters.nav import time_to_ns
     from msg_adapters.point_cloud2_cdr import header_stamp_ns
     from msg_adapters.pose import pose_to_matrix
@@ -289,9 +290,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         reset = node.create_client(Trigger, f"{node_path}/reset")
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        spinner = threading.Thread(target=_spin, args=(executor,), name="cegc_replay_spin",
-                                   daemon=True)
-        spinner.start()
+        spinner = Spinner(executor, name="cegc_replay_spin")
 
         end = time.monotonic() + connect_timeout
         while not (all(p.get_subscription_count() for p in pubs.values())
@@ -384,10 +383,10 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     finally:
         # Always, also after an error: a spin thread still inside rcl when the interpreter
         # exits aborts the process ("terminate called without an active exception").
-        if executor is not None:
-            executor.shutdown(timeout_sec=2.0)
         if spinner is not None:
-            spinner.join(5.0)
+            spinner.stop()
+        elif executor is not None:
+            executor.shutdown(timeout_sec=2.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
@@ -410,16 +409,6 @@ def _call_reset(client: Any, node_path: str) -> None:
     future.add_done_callback(lambda _f: done.set())
     if not done.wait(RESET_TIMEOUT_S) or future.result() is None or not future.result().success:
         raise ReplayError(f"{node_path}/reset did not succeed before the repeated play")
-
-
-def _spin(executor: Any) -> None:
-    """The replay's spin thread: ends quietly when the executor or its context shuts down."""
-    from rclpy.executors import ExternalShutdownException
-
-    try:
-        executor.spin()
-    except ExternalShutdownException:
-        pass
 
 
 #: How often a lockstep wait checks that the node is still there (s).

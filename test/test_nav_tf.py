@@ -145,6 +145,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
+from cegc_ros.spinning import Spinner
 from msg_adapters import nav, transform
 
 T = np.array(eval(sys.argv[1]))
@@ -159,8 +160,7 @@ node.create_subscription(TFMessage, "/tf", on, 10)
 pub = node.create_publisher(TFMessage, "/tf", 10)
 ex = SingleThreadedExecutor()
 ex.add_node(node)
-spinner = threading.Thread(target=ex.spin, daemon=True)
-spinner.start()
+spinner = Spinner(ex)
 msg = TFMessage(transforms=[transform.transform_stamped(
     T, Header(stamp=nav.time_from_ns(42_000_000_123), frame_id="odom"), "base_link")])
 end = time.monotonic() + 20
@@ -171,8 +171,7 @@ t = box["msg"].transforms[0]
 assert (t.header.frame_id, t.child_frame_id) == ("odom", "base_link")
 assert nav.time_to_ns(t.header.stamp) == 42_000_000_123
 print(repr(transform.transform_to_matrix(t.transform).tolist()))
-ex.shutdown(timeout_sec=2.0)
-spinner.join(5.0)
+spinner.stop()
 node.destroy_node()
 rclpy.try_shutdown()
 """

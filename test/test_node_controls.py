@@ -3,7 +3,6 @@ real DDS: in-process nodes with the echo stand-in engine, a client node in the s
 
 from __future__ import annotations
 
-import threading
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ rclpy = pytest.importorskip("rclpy")
 from rclpy.parameter import Parameter  # noqa: E402
 
 from cegc_ros.node.engine_process import EngineProcess  # noqa: E402
+from cegc_ros.spinning import Spinner  # noqa: E402
 from test_sequential import World, pose  # noqa: E402
 
 SEC = 10**9
@@ -53,8 +53,7 @@ class Rig:
         self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
         for n in (self.node, self.client_node):
             self.executor.add_node(n)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
         assert self.reset_client.wait_for_service(30.0)
 
     def reset(self) -> str:
@@ -68,8 +67,7 @@ class Rig:
         return next((m for m in self.odometry if rh.stamp_of(m) == stamp), None)
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5.0)
+        self.spinner.stop()
         for n in (self.node, self.client_node):
             n.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -23,6 +22,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cegc_ros.config import PreprocessConfig
 from cegc_ros.engine import default_weights
+from cegc_ros.spinning import Spinner
 
 SEC = 10**9
 CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", default_weights()))
@@ -54,7 +54,7 @@ def ros():
     probe = rh.make_probe(context=context)
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(probe)
-    threading.Thread(target=ex.spin, daemon=True).start()
+    spinner = Spinner(ex)
     if not rh.wait_for(lambda: probe.connected() or proc.poll() is not None, 90.0):
         proc.kill()
         pytest.fail(f"node did not come up:\n{proc.communicate()[0]}")
@@ -64,7 +64,7 @@ def ros():
     if proc.poll() is None:
         proc.kill()
         proc.communicate()
-    ex.shutdown()
+    spinner.stop()
     probe.destroy_node()
     rclpy.try_shutdown(context=context)
 

@@ -19,7 +19,6 @@ import array
 import os
 import subprocess
 import sys
-import threading
 
 import numpy as np
 import pytest
@@ -30,6 +29,8 @@ hypothesis = pytest.importorskip("hypothesis")
 
 from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
+
+from cegc_ros.spinning import Spinner  # noqa: E402
 
 SEC = 10**9
 MAX_EXAMPLES = int(os.environ.get("CEGC_FUZZ_EXAMPLES", "30"))
@@ -134,8 +135,7 @@ def node():
     probe = rh.make_probe(namespace="/fuzz", context=context)
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(probe)
-    spinner = threading.Thread(target=ex.spin, daemon=True)
-    spinner.start()
+    spinner = Spinner(ex)
     try:
         ok = rh.wait_for(lambda: (probe.connected() and probe.diagnostics())
                          or proc.poll() is not None, 180.0)
@@ -151,8 +151,7 @@ def node():
         except subprocess.TimeoutExpired:
             proc.kill()
             out = proc.communicate()[0]
-        ex.shutdown(timeout_sec=2.0)
-        spinner.join(5.0)
+        spinner.stop()
         probe.destroy_node()
         rclpy.try_shutdown(context=context)
         assert "Traceback" not in out, out

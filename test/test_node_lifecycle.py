@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cegc_ros.data.sequences import make_room_sequence
 from cegc_ros.engine import default_weights
+from cegc_ros.spinning import Spinner
 
 CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", default_weights()))
 BASE_ARGS = ["--ros-args", "--params-file", f"{rh.REPO}/params/register_node.yaml",
@@ -82,7 +82,7 @@ class Manager:
         self.diagnostics = self.recorder.diagnostics
         self.ex = SingleThreadedExecutor(context=self.context)
         self.ex.add_node(self.node)
-        threading.Thread(target=self.ex.spin, daemon=True).start()
+        self.spinner = Spinner(self.ex)
 
     def _call(self, client, request):
         assert client.wait_for_service(timeout_sec=TIMEOUT), f"no service {client.srv_name}"
@@ -103,7 +103,7 @@ class Manager:
         return bool(self._call(self.change, req).success)
 
     def close(self) -> None:
-        self.ex.shutdown()
+        self.spinner.stop()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 

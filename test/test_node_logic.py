@@ -28,6 +28,7 @@ from cegc_ros.node import (
     usage,
 )
 from cegc_ros.node.engine_process import InlineEngine
+from cegc_ros.spinning import Spinner
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -96,11 +97,10 @@ def ros():
     ex = MultiThreadedExecutor(num_threads=2)
     ex.add_node(node)
     ex.add_node(probe)
-    spinner = threading.Thread(target=ex.spin, daemon=True)
-    spinner.start()
+    spinner = Spinner(ex)
     assert rh.wait_for(probe.connected, 10.0), "probe never matched the node"
     yield node, probe, made["reg"]
-    ex.shutdown()
+    spinner.stop()
     node.destroy_node()
     probe.destroy_node()
     rclpy.try_shutdown()

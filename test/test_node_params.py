@@ -7,7 +7,6 @@ arguments a user types after --ros-args.
 
 from __future__ import annotations
 
-import threading
 
 import pytest
 import ros_helpers as rh
@@ -19,6 +18,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 
 from cegc_ros.node import ParameterError, param_specs  # noqa: E402
 from cegc_ros.node.engine_process import EngineProcess  # noqa: E402
+from cegc_ros.spinning import Spinner  # noqa: E402
 
 
 def _echo(pre, eng):
@@ -35,22 +35,20 @@ class _Running:
 
         self.context = rclpy.Context()
         rclpy.init(args=["register_node", "--ros-args", *ros_args], context=self.context)
-        self.node = self.executor = None
+        self.node = self.executor = self.spinner = None
         try:
             self.node = node_class()(engine_factory=_echo, namespace=namespace,
                                      context=self.context, **kwargs)
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
-            self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-            self.thread.start()
+            self.spinner = Spinner(self.executor)
         except BaseException:
             self.close()
             raise
 
     def close(self) -> None:
-        if self.executor is not None:
-            self.executor.shutdown(timeout_sec=2.0)
-            self.thread.join(5.0)
+        if self.spinner is not None:
+            self.spinner.stop()
         if self.node is not None:
             self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -7,7 +7,6 @@ generous bound on a hang, and the assertions are about order and counts.
 
 from __future__ import annotations
 
-import threading
 
 import numpy as np
 import pytest
@@ -18,6 +17,7 @@ rclpy = pytest.importorskip("rclpy")
 from rclpy.parameter import Parameter  # noqa: E402
 
 from cegc_ros.node.engine_process import EngineProcess  # noqa: E402
+from cegc_ros.spinning import Spinner  # noqa: E402
 
 SEC = 10**9
 
@@ -36,8 +36,7 @@ class _Stack:
         rclpy.init(context=self.context)
         self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
         self.nodes: list = []
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
 
     def node(self, factory: str, namespace: str = "/", **params):
         from cegc_ros.node import node_class
@@ -57,8 +56,7 @@ class _Stack:
         return node, probe
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5.0)
+        self.spinner.stop()
         for n in self.nodes:
             n.destroy_node()
         rclpy.try_shutdown(context=self.context)

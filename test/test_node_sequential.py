@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cegc_ros.data.sequences import FRAME_ID, make_room_sequence
 from cegc_ros.engine import default_weights
+from cegc_ros.spinning import Spinner
 
 CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", default_weights()))
 NUM_CLOUDS = 16
@@ -85,7 +85,7 @@ def seq_node():
     probe = make_seq_probe(context)
     ex = SingleThreadedExecutor(context=context)
     ex.add_node(probe)
-    threading.Thread(target=ex.spin, daemon=True).start()
+    spinner = Spinner(ex)
     up = rh.wait_for(lambda: (probe.pub.get_subscription_count() > 0
                               and probe.count_publishers("/register_node/odometry") > 0)
                      or proc.poll() is not None, 120.0)
@@ -101,7 +101,7 @@ def seq_node():
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
-    ex.shutdown()
+    spinner.stop()
     probe.destroy_node()
     rclpy.try_shutdown(context=context)
 

@@ -9,6 +9,8 @@ import time
 import pytest
 import ros_helpers as rh
 
+from cegc_ros.spinning import Spinner
+
 rclpy = pytest.importorskip("rclpy")
 
 
@@ -34,8 +36,7 @@ class SilentNode:
         self.dead = threading.Event()
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
 
     def _on(self, _msg) -> None:
         self.received += 1
@@ -48,8 +49,7 @@ class SilentNode:
             self.node.destroy_subscription(sub)
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5.0)
+        self.spinner.stop()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
@@ -159,12 +159,10 @@ class CloudRecorder:
         self.node.create_publisher(Odometry, f"{namespace}/register_node/odometry", 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5.0)
+        self.spinner.stop()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 

@@ -123,6 +123,8 @@ class _Client:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
+        from cegc_ros.spinning import Spinner
+
         base = namespace.rstrip("/")
         self.status_name = f"{base}/register_node: registration"
         self.context = rclpy.Context()
@@ -142,8 +144,7 @@ class _Client:
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
 
     def _on_pose(self, msg: Any) -> None:
         now = time.perf_counter()
@@ -191,8 +192,7 @@ class _Client:
 
     def close(self) -> None:
         import rclpy
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5.0)
+        self.spinner.stop()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
