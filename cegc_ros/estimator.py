@@ -70,7 +70,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .refine import fitnesses
-from .visibility import free_space_violations
+from .visibility import FreeSpace
 
 ESTIMATORS = ("compatibility", "svd")
 
@@ -323,7 +323,8 @@ def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: Co
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
             known: dict[int, float]) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
-    chosen one's fitness, their verification scores). ``visibility`` None: count x fitness
+    chosen one's fitness, their verification scores: exact where they decide the choice or
+    :func:`ambiguity`, see :func:`_free_space_scores`). ``visibility`` None: count x fitness
     alone. ``known``: fitnesses of hypotheses (by index) an earlier call measured; this call's
     are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
@@ -336,9 +337,49 @@ def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: Co
     fit = np.array([known[int(i)] for i in top])
     rank = total[top] * fit
     if cfg.free_space > 0 and visibility is not None:
-        rank = rank * np.exp(-cfg.free_space * free_space_violations(R[top], t[top], *visibility))
+        rank = _free_space_scores(rank, R[top], t[top], cfg.free_space, FreeSpace(*visibility),
+                                  np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
     i = int(rank.argmax())
     return int(top[i]), top, float(fit[i]), rank
+
+
+#: Poses whose free space :func:`_free_space_scores` checks at a time (vectorised over them).
+FREE_SPACE_CHUNK = 8
+
+
+def _free_space_scores(upper: np.ndarray, R: np.ndarray, t: np.ndarray, strength: float,
+                       space: FreeSpace, source: np.ndarray, distance: float) -> np.ndarray:
+    """Scores ``upper`` (H,) >= 0 times ``exp(-strength x violations)`` of the poses R (H, 3, 3),
+    t (H, 3), computed where they can matter and -inf elsewhere: exact for the highest one and
+    for every pose :func:`ambiguity` could take as the best distinct rival, so both read the
+    same as from all H scores (test_estimator).
+
+    The factor is at most 1, so a pose whose ``upper`` is below an exact score already found
+    can beat it in neither role: poses are checked in chunks, highest ``upper`` first, until
+    the rest cannot. (Synthetic 20k-point pairs that take the check: 13-33 of 50 checked.)"""
+    rank = np.full(len(upper), -np.inf)
+    # stable: among equal upper scores the lower index comes first, so a pose left unchecked
+    # with an upper score equal to the best exact one could only tie it from a higher index,
+    # where argmax (the first maximum) would not take it
+    order = np.argsort(-upper, kind="stable")
+
+    def check(idx: np.ndarray) -> None:
+        rank[idx] = upper[idx] * np.exp(-strength * space.violations(R[idx], t[idx]))
+
+    done = 0                                   # order[:done] checked
+    while done < len(order) and (done == 0 or upper[order[done]] > rank.max()):
+        check(order[done:done + FREE_SPACE_CHUNK])
+        done += FREE_SPACE_CHUNK
+    # the rest cannot beat the best score: the choice is made; now its best distinct rival
+    distinct = _distinct(R, t, int(rank.argmax()), source, distance)
+    rest = [int(i) for i in order[done:] if distinct[i]]
+    while rest:
+        rival = rank[distinct].max() if distinct.any() else -np.inf
+        rest = [i for i in rest if upper[i] > rival]
+        if rest:
+            check(np.array(rest[:FREE_SPACE_CHUNK], np.int64))
+        rest = rest[FREE_SPACE_CHUNK:]
+    return rank
 
 
 #: Two poses are distinct alignments when they put the source points more than this many
@@ -359,10 +400,16 @@ def ambiguity(R: np.ndarray, t: np.ndarray, rank: np.ndarray, source: np.ndarray
     if len(rank) < 2 or not rank.max() > 0:
         return 0.0
     b = int(rank.argmax())
+    distinct = _distinct(R, t, b, source, distance)
+    return float(rank[distinct].max() / rank[b]) if distinct.any() else 0.0
+
+
+def _distinct(R: np.ndarray, t: np.ndarray, b: int, source: np.ndarray, distance: float) -> np.ndarray:
+    """(H,) bool: pose h puts the source points (Ns, 3) more than ``distance`` (root mean
+    square) from where pose b puts them."""
     # (R_h - R_b) p + (t_h - t_b) for every source point p: how far apart the two poses put it
     gap = source[None] @ np.transpose(R - R[b], (0, 2, 1)) + (t - t[b])[:, None]       # (H, Ns, 3)
-    distinct = np.sqrt(np.square(gap).sum(-1).mean(1)) > distance
-    return float(rank[distinct].max() / rank[b]) if distinct.any() else 0.0
+    return np.sqrt(np.square(gap).sum(-1).mean(1)) > distance
 
 
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,

@@ -82,15 +82,29 @@ def subsample(points: np.ndarray, n: int = POINTS, seed: int = 0) -> np.ndarray:
     return pts[np.sort(np.random.default_rng(seed).choice(len(pts), n, replace=False))]
 
 
+class FreeSpace:
+    """Two clouds in their sensors' frames, sampled (:func:`subsample`) and imaged once, for the
+    free-space violations of any number of poses T_target_source (:meth:`violations`)."""
+
+    def __init__(self, source: np.ndarray, target: np.ndarray) -> None:
+        self.source = subsample(source)                                     # (Ns, 3)
+        self.target = subsample(target)                                     # (Nt, 3)
+        self.source_image = RangeImage.of(self.source)
+        self.target_image = RangeImage.of(self.target)
+
+    def violations(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """R (H, 3, 3), t (H, 3) -> (H,) the share of source points each pose puts in the
+        target's free space plus the share of target points the inverse pose puts in the
+        source's."""
+        # coordinates along the rows, (H, 3, N): each pass runs over N contiguous values
+        into_t = R @ np.ascontiguousarray(self.source.T) + t[:, :, None]           # (H, 3, Ns)
+        into_s = np.transpose(R, (0, 2, 1)) @ (self.target.T[None] - t[:, :, None])  # R^T (q - t), (H, 3, Nt)
+        return (self.target_image.violations_of(*into_t.transpose(1, 0, 2))
+                + self.source_image.violations_of(*into_s.transpose(1, 0, 2)))
+
+
 def free_space_violations(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray
                           ) -> np.ndarray:
     """H poses T_target_source (R (H, 3, 3), t (H, 3)), (Ns, 3) source and (Nt, 3) target
-    points, each in its sensor's frame -> (H,) the share of source points each pose puts in the
-    target's free space plus the share of target points the inverse pose puts in the source's."""
-    src = subsample(source)
-    tgt = subsample(target)
-    # coordinates along the rows, (H, 3, N): each pass runs over N contiguous values
-    into_t = R @ np.ascontiguousarray(src.T) + t[:, :, None]                   # (H, 3, Ns)
-    into_s = np.transpose(R, (0, 2, 1)) @ (tgt.T[None] - t[:, :, None])        # R^T (q - t), (H, 3, Nt)
-    return (RangeImage.of(tgt).violations_of(*into_t.transpose(1, 0, 2))
-            + RangeImage.of(src).violations_of(*into_s.transpose(1, 0, 2)))
+    points, each in its sensor's frame -> (H,) :meth:`FreeSpace.violations`."""
+    return FreeSpace(source, target).violations(R, t)

@@ -354,3 +354,62 @@ def test_a_symmetric_scene_makes_the_answer_ambiguous_and_an_asymmetric_one_does
     assert rotation_error_deg(R, est.R) < 0.5 and est.ambiguity < 0.5
     # without verification there is nothing to compare: 0
     assert estimate_compatibility(src, tgt, np.ones(len(src)), 0.05).ambiguity == 0.0
+
+
+def test_free_space_scores_are_checked_lazily_with_the_same_choice_and_ambiguity():
+    """_free_space_scores checks only the poses that can still be the best or its best distinct
+    rival: on random problems (poses around a few alignments, spread and tied scores, free-space
+    factors from 1 to 0.02) the choice, its score and the ambiguity equal those of checking
+    every pose, every checked score is the full one, and fewer poses are checked than there
+    are. Then the same with real range images (visibility.FreeSpace)."""
+    from cegc_ros.estimator import _free_space_scores, ambiguity
+    from cegc_ros.visibility import FreeSpace
+
+    class Table:
+        """Violations looked up by pose (its translation), counting the poses checked."""
+
+        def __init__(self, t: np.ndarray, v: np.ndarray) -> None:
+            self.t, self.v, self.checked = t, v, 0
+
+        def violations(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+            self.checked += len(t)
+            return np.array([self.v[int(np.argmin(np.abs(self.t - row).sum(1)))] for row in t])
+
+    rng = np.random.default_rng(7)
+    src = rng.uniform(-2, 2, (300, 3))
+    checked = total = 0
+    for trial in range(200):
+        H = int(rng.integers(2, 60))
+        centres = Rotation.random(4, random_state=trial).as_matrix()
+        pick = rng.integers(0, 4, H)
+        R = np.einsum("hij,hjk->hik", centres[pick],
+                      Rotation.from_rotvec(rng.normal(0, 0.01, (H, 3))).as_matrix())
+        t = rng.normal(0, 0.5, (4, 3))[pick] + rng.normal(0, 0.005, (H, 3))
+        upper = rng.exponential(1.0, H)
+        v = rng.uniform(0.0, 0.4, H)
+        if trial % 3 == 0:                                   # ties at the top, some exact
+            tied = rng.integers(0, H, max(1, H // 2))
+            upper[tied], v[tied[::2]] = upper.max(), 0.0
+        space = Table(t, v)
+        full = upper * np.exp(-10.0 * v)
+        lazy = _free_space_scores(upper, R, t, 10.0, space, src, 0.2)
+        seen = np.isfinite(lazy)
+        assert space.checked == seen.sum()
+        assert np.array_equal(lazy[seen], full[seen])
+        assert int(lazy.argmax()) == int(full.argmax())
+        assert ambiguity(R, t, lazy, src, 0.2) == ambiguity(R, t, full, src, 0.2)
+        checked, total = checked + space.checked, total + H
+    assert checked < 0.8 * total
+
+    # real range images: a box of walls seen from inside, poses around the identity
+    wall = rng.uniform(-3, 3, (2500, 3))
+    wall[np.arange(2500), rng.integers(0, 3, 2500)] = rng.choice([-3.0, 3.0], 2500)
+    space = FreeSpace(wall, wall[rng.permutation(2500)[:2000]])
+    R = Rotation.from_rotvec(rng.normal(0, 0.3, (50, 3))).as_matrix()
+    t = rng.normal(0, 0.5, (50, 3))
+    upper = rng.exponential(1.0, 50)
+    full = upper * np.exp(-10.0 * space.violations(R, t))
+    lazy = _free_space_scores(upper, R, t, 10.0, space, wall[:500], 0.2)
+    seen = np.isfinite(lazy)
+    assert np.array_equal(lazy[seen], full[seen]) and int(lazy.argmax()) == int(full.argmax())
+    assert ambiguity(R, t, lazy, wall[:500], 0.2) == ambiguity(R, t, full, wall[:500], 0.2)
