@@ -14,6 +14,7 @@ Used by the replay client (cegc_ros.replay), the node benchmark's probe and the 
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 #: The longest a stop waits for the loop: one ``spin_once`` slice plus a callback in flight (s).
@@ -36,9 +37,12 @@ class Spinner:
     def _run(self) -> None:
         from rclpy.executors import ExternalShutdownException, ShutdownException
 
-        while not self._stop.is_set():
+        ex = self.executor
+        # Executor.spin's own loop condition: spin_once returns at once without raising once the
+        # context or the executor is shut down (some executors swallow both exceptions).
+        while not self._stop.is_set() and ex.context.ok() and not getattr(ex, "_is_shutdown", False):
             try:
-                self.executor.spin_once(timeout_sec=self._slice_s)
+                ex.spin_once(timeout_sec=self._slice_s)
             except (ExternalShutdownException, ShutdownException):
                 return      # the context (or the executor) was shut down from outside
 
@@ -53,13 +57,21 @@ class Spinner:
         RuntimeError if a callback is still running after ``timeout`` s (one that never
         returns): destroying nodes then would race it.
         """
+        deadline = time.monotonic() + timeout
         self._stop.set()
         self._thread.join(timeout)
-        # A MultiThreadedExecutor's callbacks run on its pool after spin_once returned: wait for
-        # them on rclpy's own count of work in flight, which Executor.shutdown means to wait on
-        # but skips (Jazzy: it tests _is_shutdown right after setting it).
+        # A MultiThreadedExecutor runs its callbacks on a pool after spin_once returned; its
+        # _futures are the tasks it submitted there, started or still queued. Wait for them
+        # (Executor.shutdown means to wait for the work in flight but does not: Jazzy tests
+        # _is_shutdown right after setting it), then for rclpy's count of callbacks running.
+        pending = list(getattr(self.executor, "_futures", ()))
         tracker = getattr(self.executor, "_work_tracker", None)
-        if self._thread.is_alive() or (tracker is not None and not tracker.wait(timeout)):
+        while self._thread.is_alive() or any(not f.done() for f in pending):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the executor's callbacks did not finish within {timeout:g} s "
+                                   "of the stop (one still running)")
+            time.sleep(0.005)
+        if tracker is not None and not tracker.wait(max(0.0, deadline - time.monotonic())):
             raise RuntimeError(f"the executor's callbacks did not finish within {timeout:g} s "
                                "of the stop (one still running)")
         self.executor.shutdown(timeout_sec=0)

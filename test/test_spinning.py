@@ -58,6 +58,40 @@ def test_stop_waits_for_the_callback_in_flight_and_nothing_runs_after_it(context
     spinner.stop()                  # idempotent
 
 
+def test_stop_waits_for_callbacks_still_queued_on_the_pool(context):
+    """One pool thread, two timers of their own callback groups: a task is usually queued behind
+    the one running when the stop comes; none may start after stop returned."""
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+    from rclpy.executors import MultiThreadedExecutor
+
+    lock = threading.Lock()
+    count = {"started": 0, "finished": 0}
+
+    def work() -> None:
+        with lock:
+            count["started"] += 1
+        time.sleep(0.03)
+        with lock:
+            count["finished"] += 1
+
+    node = rclpy.create_node("spinning_queue", context=context)
+    for _ in range(2):
+        node.create_timer(0.005, work, callback_group=MutuallyExclusiveCallbackGroup())
+    for _ in range(5):                       # five stops, each with a fresh executor
+        ex = MultiThreadedExecutor(num_threads=1, context=context)
+        ex.add_node(node)
+        spinner = Spinner(ex)
+        start = count["started"]
+        assert rh.wait_for(lambda: count["started"] >= start + 6, 10.0), "the timers never fired"
+        spinner.stop()
+        with lock:
+            after_stop = dict(count)
+        assert after_stop["started"] == after_stop["finished"]
+        time.sleep(0.1)
+        assert count == after_stop, "a callback ran after stop() returned"
+    node.destroy_node()
+
+
 def test_stop_refuses_while_a_callback_never_returns(context):
     from rclpy.executors import MultiThreadedExecutor
 
