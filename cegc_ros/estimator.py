@@ -356,7 +356,7 @@ def _free_space_scores(upper: np.ndarray, R: np.ndarray, t: np.ndarray, strength
 
     The factor is at most 1, so a pose whose ``upper`` is below an exact score already found
     can beat it in neither role: poses are checked in chunks, highest ``upper`` first, until
-    the rest cannot. (Synthetic 20k-point pairs that take the check: 13-33 of 50 checked.)"""
+    the rest cannot. (Synthetic 20k-point pairs that take the check need 13-33 of their 50.)"""
     rank = np.full(len(upper), -np.inf)
     # stable: among equal upper scores the lower index comes first, so a pose left unchecked
     # with an upper score equal to the best exact one could only tie it from a higher index,

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 
 import pytest
 import ros_helpers as rh  # noqa: F401  (pins DDS to this machine before rclpy starts)
@@ -78,7 +79,9 @@ def test_stop_waits_for_callbacks_still_queued_on_the_pool(context):
     for _ in range(2):
         node.create_timer(0.005, work, callback_group=MutuallyExclusiveCallbackGroup())
     for _ in range(5):                       # five stops, each with a fresh executor
-        ex = MultiThreadedExecutor(num_threads=1, context=context)
+        with warnings.catch_warnings():      # one pool thread on purpose: a queue behind it
+            warnings.simplefilter("ignore", UserWarning)
+            ex = MultiThreadedExecutor(num_threads=1, context=context)
         ex.add_node(node)
         spinner = Spinner(ex)
         start = count["started"]
