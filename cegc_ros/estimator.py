@@ -374,7 +374,7 @@ def _free_space_scores(upper: np.ndarray, R: np.ndarray, t: np.ndarray, strength
     distinct = _distinct(R, t, int(rank.argmax()), source, distance)
     rest = [int(i) for i in order[done:] if distinct[i]]
     while rest:
-        rival = rank[distinct].max() if distinct.any() else -np.inf
+        rival = rank[distinct].max()           # rest holds distinct poses: never empty here
         rest = [i for i in rest if upper[i] > rival]
         if rest:
             check(np.array(rest[:FREE_SPACE_CHUNK], np.int64))

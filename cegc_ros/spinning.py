@@ -66,12 +66,12 @@ class Spinner:
         # _is_shutdown right after setting it), then for rclpy's count of callbacks running.
         pending = list(getattr(self.executor, "_futures", ()))
         tracker = getattr(self.executor, "_work_tracker", None)
-        while self._thread.is_alive() or any(not f.done() for f in pending):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the executor's callbacks did not finish within {timeout:g} s "
-                                   "of the stop (one still running)")
+        def busy() -> bool:
+            return self._thread.is_alive() or any(not f.done() for f in pending)
+
+        while busy() and time.monotonic() < deadline:
             time.sleep(0.005)
-        if tracker is not None and not tracker.wait(max(0.0, deadline - time.monotonic())):
+        if busy() or (tracker is not None and not tracker.wait(max(0.0, deadline - time.monotonic()))):
             raise RuntimeError(f"the executor's callbacks did not finish within {timeout:g} s "
                                "of the stop (one still running)")
         self.executor.shutdown(timeout_sec=0)

@@ -9,7 +9,7 @@ import time
 import warnings
 
 import pytest
-import ros_helpers as rh  # noqa: F401  (pins DDS to this machine before rclpy starts)
+import ros_helpers as rh   # first: pins DDS to this machine before rclpy starts
 
 rclpy = pytest.importorskip("rclpy")
 
