@@ -91,6 +91,22 @@ class RegistrationResult:
     ambiguity: float = 0.0
 
 
+@dataclass
+class Matched:
+    """The bound, features and match stages' output (:meth:`Registrar.match_pair`): what the
+    estimate stage starts from. Metres, float64."""
+
+    bounded: bounding.BoundedPair        # the bounded clouds, each in its own frame
+    source_points: np.ndarray            # (Ns, 3) the network's source points
+    target_points: np.ndarray            # (Nt, 3)
+    matches: matching.Matches            # correspondences into them, with confidences
+    spacing: float                       # metres: median spacing of the target points (x
+                                         # engine.inlier_factor = the inlier distance)
+    scale: float                         # metres per unit of the network's normalised frame
+    runtime: str                         # what ran the network
+    timings: dict[str, float]            # seconds of the bound, features and match stages
+
+
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
     """Write format version, model config, state dict and training metadata."""
     import torch
@@ -282,9 +298,35 @@ class Registrar:
         with self._lock:
             return self._register(source_xyz, target_xyz, self.preprocess, self.engine)
 
+    def match_pair(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> Matched:
+        """The first three stages of :meth:`register` (bound, features, match): what the
+        estimate stage starts from. With :meth:`finish` it is :meth:`register`, split for
+        studies of the later stages under other ``engine`` settings on the same correspondences
+        (cegc_ros/tools/estimator_study.py). ValueError on unusable input."""
+        with self._lock:
+            return self._match(source_xyz, target_xyz, self.preprocess, self.engine)
+
+    #: The ``engine`` settings :meth:`finish` reads (the estimate, refine and verify stages);
+    #: the others act in :meth:`match_pair` or when the registrar is built.
+    FINISH_SETTINGS = ("estimator", "inlier_factor", "verify_hypotheses", "explore_seeds", "free_space",
+                       "sure_fitness", "sure_seeds", "sure_ambiguity", "refine", "icp_max_distance",
+                       "icp_max_iterations", "icp_points", "min_valid_fitness")
+
+    def finish(self, matched: Matched) -> RegistrationResult:
+        """The last three stages of :meth:`register` (estimate, refine, verify) on
+        :meth:`match_pair`'s output, under this registrar's current settings (those of
+        :data:`FINISH_SETTINGS` matter here); ``matched`` is not changed, so it can be finished
+        again under others."""
+        with self._lock:
+            return self._finish(matched, self.preprocess, self.engine)
+
     def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
         """bound -> features -> match -> estimate -> refine -> verify, one timer per stage."""
+        return self._finish(self._match(source_xyz, target_xyz, pre, eng), pre, eng)
+
+    def _match(self, source_xyz: np.ndarray, target_xyz: np.ndarray, pre: PreprocessConfig,
+               eng: EngineConfig) -> Matched:
         timings: dict[str, float] = {}
         clock = _StageClock(timings)
         with clock("bound"):
@@ -298,10 +340,18 @@ class Registrar:
                                         pre.sampling)
             src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres
             tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
-            inlier = eng.inlier_factor * refine.median_spacing(tgt_m)
+            spacing = refine.median_spacing(tgt_m)
         with clock("match"):
             network, runtime = self._network(len(ps.points), len(pt.points), eng)
             m = matching.match(network, ps, pt, eng, self.device)
+        return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings)
+
+    def _finish(self, matched: Matched, pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
+        timings = dict(matched.timings)
+        clock = _StageClock(timings)
+        src, tgt = matched.bounded.source, matched.bounded.target
+        src_m, tgt_m, m = matched.source_points, matched.target_points, matched.matches
+        inlier = eng.inlier_factor * matched.spacing
         with clock("estimate"):
             c = m.correspondences
             compat = dataclasses.replace(self.compat, verify=eng.verify_hypotheses,
@@ -318,7 +368,7 @@ class Registrar:
         refined = "none"
         if valid and eng.refine == "icp":
             with clock("refine"):
-                T = refine.icp(src, tgt, T, eng.icp_max_distance * norm.scale, eng.icp_max_iterations,
+                T = refine.icp(src, tgt, T, eng.icp_max_distance * matched.scale, eng.icp_max_iterations,
                                eng.icp_points, pre.seed)
                 refined = "icp"
         with clock("verify"):
@@ -330,12 +380,13 @@ class Registrar:
                                         f"{eng.min_valid_fitness:g}: the pose explains almost "
                                         f"none of the source")
         timings["total"] = sum(timings.values())
+        bounded = matched.bounded
         return RegistrationResult(
             T_target_source=T, source_points=src_m.astype(np.float32), target_points=tgt_m.astype(np.float32),
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
-            reason=reason, refined=refined, runtime=runtime, voxel_size=bounded.voxel, dropped=bounded.dropped,
-            timings=timings, hypotheses=est.hypotheses, ambiguity=est.ambiguity)
+            reason=reason, refined=refined, runtime=matched.runtime, voxel_size=bounded.voxel,
+            dropped=bounded.dropped, timings=timings, hypotheses=est.hypotheses, ambiguity=est.ambiguity)
 
 
 class _StageClock:

@@ -126,6 +126,31 @@ def test_a_process_started_without_the_bootstrap_gets_jemalloc():
     assert proc.stdout.split() == ["False", "None"]
 
 
+_RELEASE_PROBE = (
+    "from cegc_ros.allocator import reexec_with_allocator, release_free_memory; "
+    "reexec_with_allocator(); import numpy as np; "
+    "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * 4096 >> 20; "
+    "a = [np.ones(10 ** 7) for _ in range(30)]; del a; before = rss(); "
+    "ok = release_free_memory(); print(ok, before, rss())")
+
+
+@pytest.mark.skipif(allocator.jemalloc_path() is None, reason="jemalloc is not installed here")
+def test_release_free_memory_returns_what_jemalloc_keeps():
+    """Under the engine's jemalloc settings 2.4 GB freed stay in the process until
+    release_free_memory() hands them back; without jemalloc it reports that it did nothing."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("LD_PRELOAD", "MALLOC_CONF", "CEGC_NO_JEMALLOC", "CEGC_ALLOCATOR_REEXEC")}
+    env["PYTHONPATH"] = str(REPO)
+    proc = subprocess.run([sys.executable, "-c", _RELEASE_PROBE], capture_output=True, text=True,
+                          env=env, timeout=120, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    ok, before, after = proc.stdout.split()
+    assert ok == "True" and int(before) > 2000 and int(after) < int(before) - 2000, proc.stdout
+    proc = subprocess.run([sys.executable, "-c", _RELEASE_PROBE], capture_output=True, text=True,
+                          env=dict(env, CEGC_NO_JEMALLOC="1"), timeout=120, cwd=REPO)
+    assert proc.returncode == 0 and proc.stdout.split()[0] == "False", proc.stderr
+
+
 # --- console scripts -----------------------------------------------------------------------
 
 
