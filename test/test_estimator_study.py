@@ -3,6 +3,7 @@ the same code, so that the later stages can be studied under other settings."""
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import re
 
@@ -10,17 +11,7 @@ import numpy as np
 import pytest
 
 from cegc_ros.data import pair_cache as PC
-from cegc_ros.data import splits, views
 from cegc_ros.tools import estimator_study, select_weights
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    cfg = views.ViewConfig(fragments=4, pairs=3, copy_pairs=1, max_points=2000)
-    rooms = [views.make_room_pairs(splits.room_seed("val", 2), "kinect", cfg)]     # 2 view pairs + 1 copy
-    root = tmp_path_factory.mktemp("val")
-    PC.write_shard(root / PC.shard_name(0, 1), rooms, {"split": "val"})
-    return root
 
 
 @pytest.fixture(scope="module")
@@ -29,11 +20,11 @@ def registrar():
     return Registrar.from_checkpoint(device="cpu")
 
 
-def test_finish_of_match_pair_is_register(cache, registrar):
+def test_finish_of_match_pair_is_register(val_cache, registrar):
     """The same pose, inliers, fitness and ambiguity as register(), and a Matched finished twice
     under the same settings gives the same result (finish does not change it). The pose to
     1e-9: register() itself differs by ~1e-15 from call to call (ICP's threaded sums)."""
-    pair = PC.PairCache(cache, kinds=("views",), sensors=("kinect",))[0]
+    pair = PC.PairCache(val_cache, kinds=("views",), sensors=("kinect",))[0]
     whole = registrar.register(pair.source, pair.target)
     matched = registrar.match_pair(pair.source, pair.target)
     for _ in range(2):
@@ -51,17 +42,17 @@ def test_finish_settings_are_the_ones_finish_reads():
     from cegc_ros.engine import Registrar
     read = set(re.findall(r"\beng\.(\w+)", inspect.getsource(Registrar._finish)))
     assert read == set(Registrar.FINISH_SETTINGS)
-    assert read <= {f.name for f in __import__("dataclasses").fields(EngineConfig)}
+    assert read <= {f.name for f in dataclasses.fields(EngineConfig)}
 
 
-def test_defaults_reproduce_select_weights_and_variants_change_the_verdicts(cache, capsys):
+def test_defaults_reproduce_select_weights_and_variants_change_the_verdicts(val_cache, capsys):
     from cegc_ros.engine import default_weights
     w = str(default_weights())
-    assert select_weights.main([str(cache), w, "--seeds", "0,1"]) == 0
+    assert select_weights.main([str(val_cache), w, "--seeds", "0,1"]) == 0
     reference = capsys.readouterr().out.strip().splitlines()[0]
     recall = reference.split("recall ")[1].split()[0]
     # the pairs' own registrations fail with ICP off and a 1 mm inlier distance: the variant is read
-    assert estimator_study.main([str(cache), "--seeds", "0,1", "--variant",
+    assert estimator_study.main([str(val_cache), "--seeds", "0,1", "--variant",
                                  "engine.inlier_factor=0.001,engine.refine=none"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2 and lines[0].startswith(f"defaults: recall {recall} on 2 pairs x 2 seeds")
@@ -69,9 +60,9 @@ def test_defaults_reproduce_select_weights_and_variants_change_the_verdicts(cach
     assert float(recall) > 0.0 and ", 0 won / " in lines[1]
 
 
-def test_only_settings_of_the_later_stages_vary(cache, capsys):
-    assert estimator_study.main([str(cache), "--variant", "engine.max_correspondences=100"]) == 1
+def test_only_settings_of_the_later_stages_vary(val_cache, capsys):
+    assert estimator_study.main([str(val_cache), "--variant", "engine.max_correspondences=100"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("estimator_study: --variant 'engine.max_correspondences=100'") and len(err.splitlines()) == 1
-    assert estimator_study.main([str(cache), "--variant", "preprocess.seed=3"]) == 1
+    assert estimator_study.main([str(val_cache), "--variant", "preprocess.seed=3"]) == 1
     assert "--variant 'preprocess.seed=3'" in capsys.readouterr().err

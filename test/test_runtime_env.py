@@ -105,6 +105,14 @@ def test_allocator_and_bootstrap_use_only_the_standard_library():
         assert mods <= set(sys.stdlib_module_names), (name, mods)
 
 
+def _without_allocator() -> dict[str, str]:
+    """This environment as a process started without the bootstrap sees it."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("LD_PRELOAD", "MALLOC_CONF", "CEGC_NO_JEMALLOC", "CEGC_ALLOCATOR_REEXEC")}
+    env["PYTHONPATH"] = str(REPO)
+    return env
+
+
 _PROBE = ("from cegc_ros.allocator import reexec_with_allocator, jemalloc_loaded; "
           "reexec_with_allocator(); import os; "
           "print(jemalloc_loaded(), os.environ.get('MALLOC_CONF'))")
@@ -114,9 +122,7 @@ _PROBE = ("from cegc_ros.allocator import reexec_with_allocator, jemalloc_loaded
 def test_a_process_started_without_the_bootstrap_gets_jemalloc():
     """What `ros2 run cegc_ros register_node` runs: the console script re-executes itself once
     with jemalloc preloaded, as the bootstrap would have started it."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("LD_PRELOAD", "MALLOC_CONF", "CEGC_NO_JEMALLOC", "CEGC_ALLOCATOR_REEXEC")}
-    env["PYTHONPATH"] = str(REPO)
+    env = _without_allocator()
     proc = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
                           env=env, timeout=60, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
@@ -138,9 +144,7 @@ _RELEASE_PROBE = (
 def test_release_free_memory_returns_what_jemalloc_keeps():
     """Under the engine's jemalloc settings 2.4 GB freed stay in the process until
     release_free_memory() hands them back; without jemalloc it reports that it did nothing."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("LD_PRELOAD", "MALLOC_CONF", "CEGC_NO_JEMALLOC", "CEGC_ALLOCATOR_REEXEC")}
-    env["PYTHONPATH"] = str(REPO)
+    env = _without_allocator()
     proc = subprocess.run([sys.executable, "-c", _RELEASE_PROBE], capture_output=True, text=True,
                           env=env, timeout=120, cwd=REPO)
     assert proc.returncode == 0, proc.stderr

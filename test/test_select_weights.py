@@ -9,33 +9,24 @@ from cegc_ros.data import splits, views
 from cegc_ros.tools import select_weights
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    cfg = views.ViewConfig(fragments=4, pairs=3, copy_pairs=1, max_points=2000)
-    rooms = [views.make_room_pairs(splits.room_seed("val", 2), "kinect", cfg)]     # 2 view pairs + 1 copy
-    root = tmp_path_factory.mktemp("val")
-    PC.write_shard(root / PC.shard_name(0, 1), rooms, {"split": "val"})
-    return root
-
-
-def test_recall_line_per_checkpoint_and_one_line_errors(cache, capsys):
+def test_recall_line_per_checkpoint_and_one_line_errors(val_cache, capsys):
     from cegc_ros.engine import default_weights
-    n_views = len(PC.PairCache(cache, kinds=("views",), sensors=("kinect",)))
+    n_views = len(PC.PairCache(val_cache, kinds=("views",), sensors=("kinect",)))
     assert n_views == 2
-    assert select_weights.main([str(cache), str(default_weights()), "--set", "engine.candidates=fpfh"]) == 0
+    assert select_weights.main([str(val_cache), str(default_weights()), "--set", "engine.candidates=fpfh"]) == 0
     line = capsys.readouterr().out.strip()
     assert line.startswith(f"{default_weights()}: recall ") and f"on {n_views} pairs" in line
     recall = float(line.split("recall ")[1].split()[0])
     assert 0.0 <= recall <= 1.0
-    assert select_weights.main([str(cache), "/nope.pt"]) == 1
+    assert select_weights.main([str(val_cache), "/nope.pt"]) == 1
     assert "nope.pt" in capsys.readouterr().err
-    assert select_weights.main([str(cache), str(default_weights()), "--set", "engine.bogus=1"]) == 1
+    assert select_weights.main([str(val_cache), str(default_weights()), "--set", "engine.bogus=1"]) == 1
     assert "--set 'engine.bogus=1'" in capsys.readouterr().err
-    assert select_weights.main([str(cache), str(default_weights()), "--peers", "sc2pcr+icp"]) == 0
+    assert select_weights.main([str(val_cache), str(default_weights()), "--peers", "sc2pcr+icp"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and lines[1].startswith("sc2pcr+icp: recall ") and f"on {n_views} pairs" in lines[1]
     assert lines[2].startswith(f"  against {default_weights()}: won ")          # on the same pairs
-    assert select_weights.main([str(cache), str(default_weights()), "--peers", "magic"]) == 1
+    assert select_weights.main([str(val_cache), str(default_weights()), "--peers", "magic"]) == 1
     assert "unknown method 'magic'" in capsys.readouterr().err
 
 
@@ -53,11 +44,11 @@ def test_sensor_picks_the_lidar_pairs(tmp_path, capsys):
     assert "no kinect different-view pairs" in capsys.readouterr().err
 
 
-def test_seeds_pool_the_recall_and_the_second_checkpoint_is_held_against_the_first(cache, capsys):
+def test_seeds_pool_the_recall_and_the_second_checkpoint_is_held_against_the_first(val_cache, capsys):
     import numpy as np
     from cegc_ros.engine import default_weights
     w = str(default_weights())
-    assert select_weights.main([cache.as_posix(), w, w, "--seeds", "0,1", "--set", "engine.candidates=fpfh"]) == 0
+    assert select_weights.main([val_cache.as_posix(), w, w, "--seeds", "0,1", "--set", "engine.candidates=fpfh"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and "on 2 pairs x 2 seeds" in lines[0] and "of 2," in lines[0]   # 1 low pair x 2
     assert lines[1].split(", median")[0] == lines[0].split(", median")[0]
@@ -177,12 +168,12 @@ def test_pose_evidence_prefers_the_pose_that_explains_the_clouds():
     assert wrong["result_evidence"] < 0.5 * wrong["gt_evidence"]
 
 
-def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_path, capsys):
+def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(val_cache, tmp_path, capsys):
     import csv
 
     from cegc_ros.engine import default_weights
     out = tmp_path / "rows.csv"
-    assert select_weights.main([str(cache), str(default_weights()), "--dump", str(out)]) == 0
+    assert select_weights.main([str(val_cache), str(default_weights()), "--dump", str(out)]) == 0
     recall = float(capsys.readouterr().out.split("recall ")[1].split()[0])
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2 and {r["run"] for r in rows} == {str(default_weights())}
@@ -202,12 +193,12 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(cache, tmp_pa
                                             and float(r["translation_error_m"]) < 0.3) for r in rows)
 
 
-def test_points_thins_every_cloud_to_a_seeded_subset(cache, tmp_path, capsys):
+def test_points_thins_every_cloud_to_a_seeded_subset(val_cache, tmp_path, capsys):
     import numpy as np
 
     from cegc_ros.data.corruption import thinned
     from cegc_ros.engine import default_weights
-    pairs = [PC.PairCache(cache, kinds=("views",), sensors=("kinect",))[i] for i in range(2)]
+    pairs = [PC.PairCache(val_cache, kinds=("views",), sensors=("kinect",))[i] for i in range(2)]
     a, b = thinned(pairs, 700, [0, 1]), thinned(pairs, 700, [0, 1])
     for p, q, r in zip(pairs, a, b):
         assert len(q.source) == len(q.target) == 700 and np.array_equal(q.source, r.source)   # seeded
@@ -216,7 +207,7 @@ def test_points_thins_every_cloud_to_a_seeded_subset(cache, tmp_path, capsys):
     assert not np.array_equal(a[0].source, thinned(pairs, 700, [5, 6])[0].source)   # keyed by the pair
     assert len(thinned(pairs, 10**6, [0, 1])[0].source) == len(pairs[0].source)     # never grown
     out = tmp_path / "rows.csv"
-    assert select_weights.main([str(cache), str(default_weights()), "--points", "700", "--dump", str(out)]) == 0
+    assert select_weights.main([str(val_cache), str(default_weights()), "--points", "700", "--dump", str(out)]) == 0
     assert "on 2 pairs" in capsys.readouterr().out
     import csv
     assert len(list(csv.DictReader(open(out)))) == 2
