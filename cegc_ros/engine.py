@@ -105,6 +105,7 @@ class Matched:
     scale: float                         # metres per unit of the network's normalised frame
     runtime: str                         # what ran the network
     timings: dict[str, float]            # seconds of the bound, features and match stages
+    seed: int                            # preprocess.seed it was sampled with (ICP's draw too)
 
 
 def save_checkpoint(path: str | Path, model: Any, metadata: dict[str, Any] | None = None) -> None:
@@ -314,16 +315,16 @@ class Registrar:
 
     def finish(self, matched: Matched) -> RegistrationResult:
         """The last three stages of :meth:`register` (estimate, refine, verify) on
-        :meth:`match_pair`'s output, under this registrar's current settings (those of
-        :data:`FINISH_SETTINGS` matter here); ``matched`` is not changed, so it can be finished
-        again under others."""
+        :meth:`match_pair`'s output, under this registrar's current ``engine`` settings (those of
+        :data:`FINISH_SETTINGS` matter here) and the sampling seed it was matched with;
+        ``matched`` is not changed, so it can be finished again under other settings."""
         with self._lock:
-            return self._finish(matched, self.preprocess, self.engine)
+            return self._finish(matched, self.engine)
 
     def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
         """bound -> features -> match -> estimate -> refine -> verify, one timer per stage."""
-        return self._finish(self._match(source_xyz, target_xyz, pre, eng), pre, eng)
+        return self._finish(self._match(source_xyz, target_xyz, pre, eng), eng)
 
     def _match(self, source_xyz: np.ndarray, target_xyz: np.ndarray, pre: PreprocessConfig,
                eng: EngineConfig) -> Matched:
@@ -344,9 +345,9 @@ class Registrar:
         with clock("match"):
             network, runtime = self._network(len(ps.points), len(pt.points), eng)
             m = matching.match(network, ps, pt, eng, self.device)
-        return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings)
+        return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings, pre.seed)
 
-    def _finish(self, matched: Matched, pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
+    def _finish(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:
         timings = dict(matched.timings)
         clock = _StageClock(timings)
         src, tgt = matched.bounded.source, matched.bounded.target
@@ -369,7 +370,7 @@ class Registrar:
         if valid and eng.refine == "icp":
             with clock("refine"):
                 T = refine.icp(src, tgt, T, eng.icp_max_distance * matched.scale, eng.icp_max_iterations,
-                               eng.icp_points, pre.seed)
+                               eng.icp_points, matched.seed)
                 refined = "icp"
         with clock("verify"):
             fit = refine.fitness(src_m, tgt_m, T, inlier)
