@@ -20,52 +20,39 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 
-@dataclass
-class Captured:
-    """One validation pair at one sampling seed, matched: what each variant finishes."""
-
-    source: np.ndarray          # (N, 3) metres, as the pair cache holds it
-    target: np.ndarray          # (M, 3)
-    T_target_source: np.ndarray  # (4, 4) ground truth
-    info: dict[str, Any]        # the pair's metadata (its "overlap" above all)
-    matched: Any                # engine.Matched
-
-
-def capture(registrar: Any, pairs: list[Any], seeds: list[int]) -> list[list[Captured]]:
-    """Match every pair at every sampling seed: one list of :class:`Captured` per seed. The
-    memory freed after each pair goes back to the system (allocator.release_free_memory):
-    jemalloc would keep it beside the captured arrays."""
+def capture(registrar: Any, pairs: list[Any], seeds: list[int]) -> list[list[Any]]:
+    """Match every pair at every sampling seed: per seed, the pairs' engine.Matched in their
+    order. The memory freed after each pair goes back to the system
+    (allocator.release_free_memory): jemalloc would keep it beside the matched arrays."""
     from cegc_ros.allocator import release_free_memory
     out = []
     for seed in seeds:
         registrar.update(preprocess=dataclasses.replace(registrar.preprocess, seed=seed))
         per_seed = []
         for p in pairs:
-            per_seed.append(Captured(p.source, p.target, p.T_target_source, p.info,
-                                     registrar.match_pair(p.source, p.target)))
+            per_seed.append(registrar.match_pair(p.source, p.target))
             release_free_memory()
         out.append(per_seed)
     return out
 
 
-def finish_all(registrar: Any, captured: list[list[Captured]], engine: Any) -> dict[str, Any]:
-    """Finish every captured pair under ``engine`` settings: select_weights' pooled summary
-    (recall, under / from 30% overlap, ``ok`` per evaluation, ...) plus the stages' medians and
-    the errors of the right ones."""
+def finish_all(registrar: Any, pairs: list[Any], matched: list[list[Any]], engine: Any) -> dict[str, Any]:
+    """Finish every pair's :func:`capture` under ``engine`` settings: select_weights' pooled
+    summary (recall, under / from 30% overlap, ``ok`` per evaluation, ...) plus the stages'
+    medians and the errors of the right ones."""
     from cegc_ros.allocator import release_free_memory
     from cegc_ros.metrics import pair_errors
     from cegc_ros.tools.select_weights import evaluate, pooled
     registrar.update(engine=engine)
     results, stages, right_errors = [], {"estimate": [], "refine": []}, []
-    for per_seed in captured:
-        by_cloud = {id(c.source): c.matched for c in per_seed}
+    for per_seed in matched:
+        by_cloud = {id(p.source): m for p, m in zip(pairs, per_seed)}
         finished = []
 
         def finish(source: np.ndarray, target: np.ndarray) -> Any:
@@ -73,13 +60,13 @@ def finish_all(registrar: Any, captured: list[list[Captured]], engine: Any) -> d
             finished.append(res)
             release_free_memory()
             return res
-        summary = evaluate(finish, per_seed)
+        summary = evaluate(finish, pairs)
         results.append(summary)
-        for c, res, ok in zip(per_seed, finished, summary["ok"]):
+        for p, res, ok in zip(pairs, finished, summary["ok"]):
             for k in stages:
                 stages[k].append(res.timings.get(k, 0.0))
             if ok:
-                e = pair_errors(c.T_target_source, res.T_target_source)
+                e = pair_errors(p.T_target_source, res.T_target_source)
                 right_errors.append((float(e.rot_error_deg[0]), float(e.trans_error[0])))
     out = pooled(results)
     out.update({f"{k}_ms": 1e3 * float(np.median(v)) for k, v in stages.items()})
@@ -88,19 +75,20 @@ def finish_all(registrar: Any, captured: list[list[Captured]], engine: Any) -> d
     return out
 
 
-def parse_variant(text: str, base: Any) -> Any:
-    """"engine.a=1,engine.b=2" -> a copy of the EngineConfig ``base`` with them set; ValueError
-    naming the item for anything but a :data:`Registrar.FINISH_SETTINGS` setting."""
+def parse_variant(text: str) -> Any:
+    """"engine.a=1,engine.b=2" -> the default EngineConfig with them set (select_weights'
+    parser); ValueError naming the item for anything but a :data:`Registrar.FINISH_SETTINGS`
+    setting."""
     from cegc_ros.engine import Registrar
-    eng = dataclasses.replace(base)
-    for item in filter(None, (x.strip() for x in text.split(","))):
+    from cegc_ros.tools.select_weights import parse_overrides
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    for item in items:
         key, _, value = item.partition("=")
         section, _, name = key.partition(".")
         if section != "engine" or name not in Registrar.FINISH_SETTINGS or not value:
             raise ValueError(f"--variant {item!r}: expected engine.<setting>=<value> with a setting "
                              f"of the estimate, refine or verify stage ({', '.join(Registrar.FINISH_SETTINGS)})")
-        setattr(eng, name, type(getattr(eng, name))(value))
-    return eng
+    return parse_overrides(items)[1]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,29 +102,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect")
     args = ap.parse_args(argv)
     try:
-        from cegc_ros.config import EngineConfig
-        from cegc_ros.data.pair_cache import PairCache, PairCacheError
+        from cegc_ros.data.pair_cache import PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
-        from cegc_ros.tools.select_weights import sign_test
-        base = EngineConfig()
-        variants = [("defaults", base)] + [(v, parse_variant(v, base)) for v in args.variant]
-        cache = PairCache(args.cache, kinds=("views",), sensors=(args.sensor,))
-        if len(cache) == 0:
-            raise ValueError(f"{args.cache}: no {args.sensor} different-view pairs")
-        idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
-        pairs = [cache[int(i)] for i in idx]
+        from cegc_ros.tools.select_weights import sign_test, validation_pairs
+        variants = [("defaults", parse_variant(""))] + [(v, parse_variant(v)) for v in args.variant]
+        pairs, _ = validation_pairs(args.cache, args.pairs, args.sensor)
         seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
         registrar = (Registrar.from_checkpoint(args.checkpoint, device="cpu") if args.checkpoint
                      else Registrar.from_checkpoint(device="cpu"))
-        captured = capture(registrar, pairs, seeds)
+        matched = capture(registrar, pairs, seeds)
         reference = None
         for name, eng in variants:
-            r = finish_all(registrar, captured, eng)
+            r = finish_all(registrar, pairs, matched, eng)
             vs = ""
-            if reference is not None:
+            if reference is None:                    # the defaults, first
+                reference = r["ok"]
+            else:
                 won, lost, p = sign_test(r["ok"], reference)
                 vs = f", {won} won / {lost} lost (p = {p:.2g})"
-            reference = r["ok"] if reference is None else reference
             print(f"{name}: recall {r['recall']:.3f} on {len(pairs)} pairs x {len(seeds)} seeds "
                   f"(<30% overlap: {int(round(r['recall_low'] * r['n_low']))} of {r['n_low']}, "
                   f">=30%: {r['recall_high']:.2f}){vs}; right poses left unchosen "

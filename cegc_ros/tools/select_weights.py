@@ -183,7 +183,20 @@ def sign_test(ok: np.ndarray, reference: np.ndarray) -> tuple[int, int, float]:
     return won, lost, p
 
 
-def _overrides(items: list[str]):
+def validation_pairs(cache_dir: Path, n: int, sensor: str) -> tuple[list[Any], np.ndarray]:
+    """At most ``n`` different-view pairs of one sensor model spread evenly over a validation
+    pair cache, and their indices in it; ValueError when it holds none."""
+    from cegc_ros.data.pair_cache import PairCache
+    cache = PairCache(cache_dir, kinds=("views",), sensors=(sensor,))
+    if len(cache) == 0:
+        raise ValueError(f"{cache_dir}: no {sensor} different-view pairs")
+    idx = np.linspace(0, len(cache) - 1, min(n, len(cache))).astype(int)
+    return [cache[int(i)] for i in idx], idx
+
+
+def parse_overrides(items: list[str]):
+    """["engine.x=1", "preprocess.y=2", ...] -> (PreprocessConfig, EngineConfig) of the defaults
+    with them set, each value converted to its field's type; ValueError naming a bad item."""
     from cegc_ros.config import EngineConfig, PreprocessConfig
     pre, eng = PreprocessConfig(), EngineConfig()
     for item in items:
@@ -223,14 +236,10 @@ def main(argv: list[str] | None = None) -> int:
                          "stage seconds)")
     args = ap.parse_args(argv)
     try:
-        from cegc_ros.data.pair_cache import PairCache, PairCacheError
+        from cegc_ros.data.pair_cache import PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
-        pre, eng = _overrides(args.set)
-        cache = PairCache(args.cache, kinds=("views",), sensors=(args.sensor,))
-        if len(cache) == 0:
-            raise ValueError(f"{args.cache}: no {args.sensor} different-view pairs")
-        idx = np.linspace(0, len(cache) - 1, min(args.pairs, len(cache))).astype(int)
-        pairs = [cache[int(i)] for i in idx]
+        pre, eng = parse_overrides(args.set)
+        pairs, idx = validation_pairs(args.cache, args.pairs, args.sensor)
         if args.points > 0:
             from cegc_ros.data.corruption import thinned
             pairs = thinned(pairs, args.points, idx)                     # seeded by cache index
