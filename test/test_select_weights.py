@@ -30,6 +30,19 @@ def test_recall_line_per_checkpoint_and_one_line_errors(val_cache, capsys):
     assert "unknown method 'magic'" in capsys.readouterr().err
 
 
+def test_a_checkpoint_without_its_onnx_export_is_named_on_stderr(val_cache, tmp_path, capsys):
+    """Weights copied without their export run under torch: one stderr line says so and how to
+    export; the shipped weights (their export beside them) run as shipped, silently."""
+    import shutil
+    from cegc_ros.engine import default_weights
+    copy = tmp_path / "candidate.pt"
+    shutil.copy(default_weights(), copy)
+    assert select_weights.main([str(val_cache), str(default_weights()), str(copy)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"select_weights: {copy}: the network runs under torch")
+    assert err[0].endswith(f"python -m cegc_ros.tools.export_onnx {copy}") and "no ONNX export" in err[0]
+
+
 def test_sensor_picks_the_lidar_pairs(tmp_path, capsys):
     """--sensor lidar scores a LiDAR cache's pairs; the Kinect default finds none there (one line)."""
     from cegc_ros.engine import default_weights

@@ -13,6 +13,9 @@ chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preproces
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 ``--seeds 0,1`` runs each checkpoint at each sampling seed and pools its recall; from the second
 method on a line says how many evaluations it won and lost against the first, with a sign test.
+A checkpoint without its ONNX export (``python -m cegc_ros.tools.export_onnx CKPT``) runs
+under torch, not ONNX Runtime as the shipped weights do; one line on stderr says so (their
+roundings differ: about one verdict in a hundred flips).
 ``--dump FILE`` writes one row per evaluation, with how the learned confidences rank that pair's
 correspondences against the ground truth (:func:`ranking`: true ones, true ones among the 100
 most confident, AUC), the learned part's quality apart from the estimator's, how HOCE finds
@@ -261,6 +264,12 @@ def main(argv: list[str] | None = None) -> int:
             per_seed = []
             registrar = (Registrar.from_checkpoint(name, device="cpu", preprocess=pre, engine=eng)
                          if name in args.checkpoints else None)
+            if registrar is not None and registrar.runtime_note:
+                # the shipped weights run under ONNX Runtime; torch rounds differently, which
+                # flips about one verdict in a hundred: a candidate is judged as it would ship
+                print(f"select_weights: {name}: the network runs under torch, not ONNX Runtime as "
+                      f"shipped ({registrar.runtime_note}); export it first: python -m "
+                      f"cegc_ros.tools.export_onnx {name}", file=sys.stderr, flush=True)
             for seed in (seeds if registrar else [pre.seed]):
                 if registrar:
                     registrar.update(preprocess=dataclasses.replace(pre, seed=seed))
