@@ -53,6 +53,7 @@ from .model.losses import (
     cegc_loss,
     distill_loss,
 )
+from .model.narrowing import NarrowingError, narrowed_state
 
 OBJECTIVES = ("candidates", "paper")
 
@@ -442,8 +443,9 @@ class Trainer:
 
     def _teacher(self, fresh: bool) -> CEGC:
         """The frozen teacher of ``distill.teacher``; at a fresh start with
-        ``distill.init_from_teacher``, the student takes every tensor of the teacher whose name
-        and shape it shares. ValueError when the teacher was trained on other input features
+        ``distill.init_from_teacher``, the student starts from the teacher's tensors: cut to
+        its widths when it is a narrowing of the teacher (cegc_ros/model/narrowing.py), else
+        those whose name and shape it shares. ValueError when the teacher was trained on other input features
         (each pair is prepared once, with the student's)."""
         teacher, _ = load_checkpoint(self.cfg.distill.teacher, self.device)
         if teacher.cfg.features() != self.cfg.model.features() or teacher.cfg.variant != self.cfg.model.variant:
@@ -453,10 +455,15 @@ class Trainer:
         teacher.requires_grad_(False).eval()
         if fresh and self.cfg.distill.init_from_teacher:
             own = self.model.state_dict()
-            shared = {k: v for k, v in teacher.state_dict().items() if k in own and own[k].shape == v.shape}
+            try:        # a narrower student: each tensor cut from the teacher's (model/narrowing.py)
+                shared = narrowed_state(teacher.state_dict(), teacher.cfg, own, self.cfg.model)
+                how = "narrowed"
+            except NarrowingError:      # another design: the tensors of the same name and shape
+                shared = {k: v for k, v in teacher.state_dict().items() if k in own and own[k].shape == v.shape}
+                how = "same shape"
             self.model.load_state_dict(shared, strict=False)
             self.warm_start = {**self.warm_start, "from_teacher": self.cfg.distill.teacher,
-                               "teacher_tensors": len(shared)}
+                               "teacher_tensors": len(shared), "teacher_init": how}
         return teacher
 
     def _val_key(self) -> str:

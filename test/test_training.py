@@ -526,10 +526,11 @@ def test_distill_loss_matches_the_student_to_the_teacher_where_their_candidates_
     assert distill_loss(other, teacher, 0.1)[0] > total + 0.05             # other features: a positive KL
 
 
-def test_a_distilled_student_starts_from_the_teachers_shared_tensors_and_leaves_it_frozen(tmp_path):
+def test_a_distilled_student_starts_from_the_teachers_tensors_and_leaves_it_frozen(tmp_path):
     """A narrower student (feat_dim 16 against the teacher's 32) takes the teacher's AGNN layers
-    (same names and shapes) at a fresh start, trains with the distillation term logged, and the
-    teacher does not change; a teacher trained on other input features is refused."""
+    (same names and shapes) and the rest cut to its widths (model/narrowing.py) at a fresh
+    start, trains with the distillation term logged, and the teacher does not change; a
+    teacher trained on other input features is refused."""
     from cegc_ros.engine import save_checkpoint
     from cegc_ros.model import CEGC
     frags = fragments(2)
@@ -545,8 +546,10 @@ def test_a_distilled_student_starts_from_the_teachers_shared_tensors_and_leaves_
     theirs = teacher.state_dict()
     agnn_layers = [k for k in own if k.startswith("agnn.layers.")]
     assert agnn_layers and all(torch.equal(own[k], theirs[k]) for k in agnn_layers)
-    assert own["agnn.head.0.weight"].shape != theirs["agnn.head.0.weight"].shape
-    assert trainer.warm_start["teacher_tensors"] >= len(agnn_layers)
+    assert torch.equal(own["agnn.head.0.weight"], theirs["agnn.head.0.weight"][:16])   # the head: cut
+    assert torch.equal(own["hoce.semantic.0.0.weight"], theirs["hoce.semantic.0.0.weight"][:8, :16])
+    assert trainer.warm_start["teacher_init"] == "narrowed"
+    assert trainer.warm_start["teacher_tensors"] == len(own)                          # every tensor
     trainer.run()
     with open(tmp_path / "student" / "metrics.csv") as fh:
         rows = list(csv.DictReader(fh))

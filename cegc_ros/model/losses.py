@@ -236,8 +236,9 @@ class DistillConfig:
     teacher: str = ""            # engine checkpoint of the teacher; "" = no distillation
     weight: float = 1.0          # of distill_loss's sum
     temperature: float = 0.1     # of the feature-similarity rows (as nce_temperature)
-    #: at a fresh start (not a resume), copy every teacher tensor whose name and shape the
-    #: student shares (a narrower student: the AGNN's three layers), so it starts from them
+    #: at a fresh start (not a resume), start from the teacher's tensors: a narrower student
+    #: (fewer channels, the same design) gets each cut to its widths (cegc_ros/model/narrowing.py),
+    #: any other student every teacher tensor whose name and shape it shares
     init_from_teacher: bool = True
 
 
