@@ -102,4 +102,3 @@ def narrowed_state(teacher_state: dict[str, Tensor], teacher: ModelConfig,
                 cut = cut.index_select(axis, torch.as_tensor(keep, dtype=torch.long, device=src.device))
         out[name] = cut.detach().clone().to(own.dtype)
     return out
-
