@@ -108,8 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         variants = [("defaults", parse_variant(""))] + [(v, parse_variant(v)) for v in args.variant]
         pairs, _ = validation_pairs(args.cache, args.pairs, args.sensor)
         seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
-        registrar = (Registrar.from_checkpoint(args.checkpoint, device="cpu") if args.checkpoint
-                     else Registrar.from_checkpoint(device="cpu"))
+        registrar = Registrar.from_checkpoint(args.checkpoint, device="cpu")   # None: the shipped weights
         matched = capture(registrar, pairs, seeds)
         reference = None
         for name, eng in variants:
