@@ -77,3 +77,18 @@ def test_only_settings_of_the_later_stages_vary(val_cache, capsys):
     assert err.startswith("estimator_study: --variant 'engine.max_correspondences=100'") and len(err.splitlines()) == 1
     assert estimator_study.main([str(val_cache), "--variant", "preprocess.seed=3"]) == 1
     assert "--variant 'preprocess.seed=3'" in capsys.readouterr().err
+
+
+def test_a_checkpoint_without_its_onnx_export_is_named_on_stderr(val_cache, tmp_path, capsys):
+    """As in select_weights: weights copied without their export run under torch and one stderr
+    line, naming this tool, says so and how to export; the stdout lines are unchanged."""
+    import shutil
+    from cegc_ros.engine import default_weights
+    copy = tmp_path / "candidate.pt"
+    shutil.copy(default_weights(), copy)
+    assert estimator_study.main([str(val_cache), str(copy), "--pairs", "1"]) == 0
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"estimator_study: {copy}: the network runs under torch")
+    assert err[0].endswith(f"python -m cegc_ros.tools.export_onnx {copy}") and "no ONNX export" in err[0]
+    assert captured.out.startswith("defaults: recall ") and len(captured.out.splitlines()) == 1

@@ -10,6 +10,8 @@ code :meth:`Registrar.register` runs, so the defaults' line reproduces ``select_
 same pairs and seeds verdict for verdict (test_estimator_study), about 5x faster per variant.
 Only the settings of :data:`Registrar.FINISH_SETTINGS` can vary; a setting that acts earlier
 (the candidates, the network's runtime, any ``preprocess`` one) needs ``select_weights``.
+A checkpoint without its ONNX export runs under torch, not ONNX Runtime as shipped; one line on
+stderr says so, as in ``select_weights``.
 Each line: recall overall, under and from 30% overlap, won / lost against the defaults (sign
 test), the right poses left unchosen, the estimate and refine stages' median milliseconds, and
 the median rotation and translation errors of the pairs registered right.
@@ -104,11 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from cegc_ros.data.pair_cache import PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
-        from cegc_ros.tools.select_weights import sign_test, validation_pairs
+        from cegc_ros.tools.select_weights import note_torch_runtime, sign_test, validation_pairs
         variants = [("defaults", parse_variant(""))] + [(v, parse_variant(v)) for v in args.variant]
         pairs, _ = validation_pairs(args.cache, args.pairs, args.sensor)
         seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
         registrar = Registrar.from_checkpoint(args.checkpoint, device="cpu")   # None: the shipped weights
+        note_torch_runtime("estimator_study", registrar)
         matched = capture(registrar, pairs, seeds)
         reference = None
         for name, eng in variants:

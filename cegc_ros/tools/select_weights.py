@@ -212,6 +212,17 @@ def parse_overrides(items: list[str]):
     return pre, eng
 
 
+def note_torch_runtime(tool: str, registrar: Any) -> None:
+    """One stderr line, prefixed by ``tool``, when ``registrar`` runs its network under torch,
+    not ONNX Runtime as shipped: torch rounds differently, which flips about one verdict in a
+    hundred, so a candidate is judged as it would ship only once exported. Silent otherwise."""
+    if registrar.runtime_note:
+        name = registrar.engine.checkpoint           # the path it was loaded from
+        print(f"{tool}: {name}: the network runs under torch, not ONNX Runtime as shipped "
+              f"({registrar.runtime_note}); export it first: python -m "
+              f"cegc_ros.tools.export_onnx {name}", file=sys.stderr, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="select_weights", description=__doc__.splitlines()[0])
     ap.add_argument("cache", type=Path, help="a validation pair cache (cegc-make-pairs --split val)")
@@ -264,12 +275,8 @@ def main(argv: list[str] | None = None) -> int:
             per_seed = []
             registrar = (Registrar.from_checkpoint(name, device="cpu", preprocess=pre, engine=eng)
                          if name in args.checkpoints else None)
-            if registrar is not None and registrar.runtime_note:
-                # the shipped weights run under ONNX Runtime; torch rounds differently, which
-                # flips about one verdict in a hundred: a candidate is judged as it would ship
-                print(f"select_weights: {name}: the network runs under torch, not ONNX Runtime as "
-                      f"shipped ({registrar.runtime_note}); export it first: python -m "
-                      f"cegc_ros.tools.export_onnx {name}", file=sys.stderr, flush=True)
+            if registrar is not None:
+                note_torch_runtime("select_weights", registrar)
             for seed in (seeds if registrar else [pre.seed]):
                 if registrar:
                     registrar.update(preprocess=dataclasses.replace(pre, seed=seed))
