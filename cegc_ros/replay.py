@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import sys
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -383,13 +384,26 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     finally:
         # Always, also after an error: a spin thread still inside rcl when the interpreter
         # exits aborts the process ("terminate called without an active exception").
+        stuck: RuntimeError | None = None
         if spinner is not None:
-            spinner.stop()
+            try:
+                spinner.stop()
+            except RuntimeError as err:
+                stuck = err
         elif executor is not None:
             executor.shutdown(timeout_sec=2.0)
-        if node is not None:
+        # A callback still running after the stop keeps the node alive (destroying it would race
+        # that callback: Spinner.stop); the context still shuts down. The stop's error raises
+        # after a replay that succeeded; after one that failed, the replay's own error goes on,
+        # the stop's added to it as a note.
+        if node is not None and stuck is None:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+        if stuck is not None:
+            failed = sys.exc_info()[1]
+            if failed is None:
+                raise stuck
+            failed.add_note(f"then stopping the spin thread failed: {stuck}")
 
 
 #: How long a replay waits for the node's ``~/reset`` service between plays (s).

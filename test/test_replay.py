@@ -99,6 +99,58 @@ def test_a_node_that_never_answers_ends_it_after_wait(bag, capsys):
                    "(0 poses so far)"]
 
 
+@pytest.fixture
+def stuck_spinner(monkeypatch):
+    """replay_bag's spinner stops, then raises as Spinner.stop does when a callback outlives its
+    timeout. Yields (the nodes it spun, the nodes destroyed meanwhile); the spun ones are
+    destroyed afterwards."""
+    import cegc_ros.spinning
+    from rclpy.node import Node
+
+    spun, destroyed = [], []
+    destroy = Node.destroy_node
+
+    class StuckSpinner(Spinner):
+        def stop(self, timeout: float = 30.0) -> None:
+            spun.extend(self.executor.get_nodes())
+            super().stop(timeout)
+            raise RuntimeError("a callback still runs")
+
+    def recorded_destroy(node):
+        destroyed.append(node)
+        return destroy(node)
+
+    monkeypatch.setattr(cegc_ros.spinning, "Spinner", StuckSpinner)
+    monkeypatch.setattr(Node, "destroy_node", recorded_destroy)
+    yield spun, destroyed
+    for node in spun:
+        destroy(node)
+
+
+def test_a_failed_replay_raises_its_own_error_when_the_spinner_cannot_stop(bag, stuck_spinner):
+    """The replay's error goes on, the stop's as a note; the node a callback may still use is
+    left alive."""
+    from cegc_ros.replay import ReplayError, replay_bag
+    spun, destroyed = stuck_spinner
+    with pytest.raises(ReplayError, match="no register_node answered within 0.3 s") as info:
+        replay_bag(bag, node_namespace="/nobody", connect_timeout=0.3)
+    assert info.value.__notes__ == ["then stopping the spin thread failed: a callback still runs"]
+    assert len(spun) == 1 and destroyed == []
+
+
+def test_a_replay_that_succeeded_raises_when_the_spinner_cannot_stop(bag, stuck_spinner):
+    from cegc_ros.replay import replay_bag
+    spun, destroyed = stuck_spinner
+    node = SilentNode("/mute", die_after_first=False)
+    try:
+        with pytest.raises(RuntimeError, match="^a callback still runs$"):
+            replay_bag(bag, rate=100.0, timeout=0.2, node_namespace="/mute")
+    finally:
+        node.close()
+    assert node.received == 6                         # the 3 pairs were played
+    assert len(spun) == 1 and destroyed == [node.node]  # the silent node's own close only
+
+
 # --- any rosbag2: topic choice, remaps, skipped topics, start offset ----------------------------
 
 CUSTOM_MSG = "float64 temperature\nstring note\n"
