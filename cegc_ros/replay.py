@@ -17,6 +17,7 @@ import os
 import sys
 import threading
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,9 @@ class ReplayRecord:
     sequence bag, the ground truth relative to the first cloud played (the odometry's frame).
     latency_s: from publishing the item's last cloud to receiving its answer (None without).
     loop: which play of the bag (0 first; ``loops`` > 1).
+    fitness / ambiguity / rejected: a pair's ``~/quality`` (the engine's fitness and ambiguity;
+    the rejection reason when the node published no pose for it, e.g. ``ambiguous``); None
+    without one (a stream, or no quality message received).
     """
 
     index: int
@@ -50,6 +54,9 @@ class ReplayRecord:
     T_gt: list[list[float]] | None
     latency_s: float | None
     loop: int = 0
+    fitness: float | None = None
+    ambiguity: float | None = None
+    rejected: str | None = None
 
 
 @dataclass
@@ -258,6 +265,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     rclpy.init(context=context)
     lock = threading.Lock()
     answers: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
+    quality: dict[int, dict[str, str]] = {}             # stamp -> ~/quality key-values (pairs)
     diag: dict[str, str] = {}
     answered = threading.Condition(lock)
     status_name = f"{node_path}: registration"      # the node's full name
@@ -277,6 +285,16 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                 answers[stamp] = (T, now)
                 answered.notify_all()
 
+        def on_quality(msg: Any) -> None:
+            for st in msg.status[:1]:
+                with answered:
+                    quality[time_to_ns(msg.header.stamp)] = {kv.key: kv.value for kv in st.values}
+                    answered.notify_all()
+
+        def done(stamp: int) -> bool:
+            """The node answered the item: a pose, or a quality message saying it has none."""
+            return stamp in answers or quality.get(stamp, {}).get("published") == "false"
+
         def on_diag(msg: Any) -> None:
             for st in msg.status:
                 if st.name == status_name:
@@ -288,6 +306,8 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         node.create_subscription(PoseStamped if plan.pairs else Odometry, out_topic, on_answer,
                                  100)
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+        if plan.pairs:
+            node.create_subscription(DiagnosticArray, f"{node_path}/quality", on_quality, 100)
         reset = node.create_client(Trigger, f"{node_path}/reset")
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -316,6 +336,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
             nonlocal sent
             with answered:
                 answers.clear()
+                quality.clear()
             published: dict[int, float] = {}    # stamp -> publish time of the item's last cloud
             order: list[int] = []
             pending: dict[int, set[str]] = {}   # stamp -> topics published so far
@@ -350,19 +371,22 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                                               >= base + sent, timeout)
                 if not lockstep:
                     with answered:
-                        answered.wait_for(lambda: all(s in answers for s in order), timeout)
+                        answered.wait_for(lambda: all(done(s) for s in order), timeout)
             finally:
                 bar.close()
             with lock:
                 for stamp in order:
                     got = answers.get(stamp)
                     T_gt = gt.get(stamp)
+                    q = quality.get(stamp, {})
                     records.append(ReplayRecord(
                         index=len(records), stamp_ns=stamp,
                         T_est=None if got is None else got[0].tolist(),
                         T_gt=None if T_gt is None else T_gt.tolist(),
                         latency_s=None if got is None else got[1] - published[stamp],
-                        loop=play))
+                        loop=play, fitness=_number(q.get("fitness")),
+                        ambiguity=_number(q.get("ambiguity")),
+                        rejected=q.get("reason") if q.get("published") == "false" else None))
 
         t_start = time.monotonic()
         play = 0
@@ -465,6 +489,15 @@ def _progress(total: int, enabled: bool, unit: str = "pair") -> Any:
     return tqdm(total=total, unit=unit, desc="replay")
 
 
+def _number(text: str | None) -> float | None:
+    """A ~/quality value as a float; None when absent or not a number ("nan", "")."""
+    try:
+        value = float(text) if text else None
+    except ValueError:
+        return None
+    return value if value is not None and np.isfinite(value) else None
+
+
 def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) -> None:
     """Write records as JSON (with ``meta`` and the node's diagnostics) or CSV (one row/pair)."""
     path = Path(path)
@@ -474,12 +507,14 @@ def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) 
             w = csv.writer(f)
             w.writerow(["index", "loop", "stamp_ns", "latency_s"] + [f"est_{i}{j}" for i in range(4)
                                                               for j in range(4)]
-                       + [f"gt_{i}{j}" for i in range(4) for j in range(4)])
+                       + [f"gt_{i}{j}" for i in range(4) for j in range(4)]
+                       + ["fitness", "ambiguity", "rejected"])
             for r in result.records:
                 est = np.asarray(r.T_est).ravel().tolist() if r.T_est else [""] * 16
                 gt = np.asarray(r.T_gt).ravel().tolist() if r.T_gt else [""] * 16
                 w.writerow([r.index, r.loop, r.stamp_ns, "" if r.latency_s is None else r.latency_s]
-                           + est + gt)
+                           + est + gt + ["" if v is None else v
+                                         for v in (r.fitness, r.ambiguity, r.rejected)])
     else:
         path.write_text(json.dumps({"meta": meta, **result.to_json()}, indent=1))
 
@@ -492,6 +527,9 @@ def summary(result: ReplayResult) -> dict[str, Any]:
                            "poses": len(with_pose), "wall_s": round(result.wall_s, 3)}
     if result.loops != 1:
         out["loops"] = result.loops
+    rejected = Counter(r.rejected for r in recs if r.rejected)
+    if rejected:                          # by the node's reason (~/quality)
+        out["rejected"] = dict(sorted(rejected.items()))
     lat = [r.latency_s for r in with_pose if r.latency_s is not None]
     if lat:
         p50, p90 = np.percentile(lat, [50, 90])

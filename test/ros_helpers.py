@@ -113,7 +113,7 @@ def make_probe(node_name: str = "register_node", namespace: str = "/",
                         for s in ("source", "target")}
             outputs = {"pose": PoseStamped, "pose_with_covariance": PoseWithCovarianceStamped,
                        "source_overlap": PointCloud2, "target_overlap": PointCloud2,
-                       "markers": MarkerArray}
+                       "markers": MarkerArray, "quality": DiagnosticArray}
             for name, kind in outputs.items():
                 self.create_subscription(kind, f"{base}/{node_name}/{name}",
                                          self.keeper(name), 50)

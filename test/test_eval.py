@@ -249,8 +249,12 @@ def test_cegc_offline_and_through_node_give_the_same_numbers(bag, tiny_checkpoin
         assert float(rb["rot_error_deg"]) == pytest.approx(float(ra["rot_error_deg"]), abs=1e-4)
         assert float(rb["trans_error"]) == pytest.approx(float(ra["trans_error"]), abs=1e-5)
         assert float(rb["latency_ms"]) > 0
-        # the engine's ambiguity offline; the node's pose topic does not carry it
-        assert 0.0 <= float(ra["ambiguity"]) <= 1.0 and rb["ambiguity"] == "nan"
+        # the engine's fitness and ambiguity: offline from its result, through the node from
+        # its ~/quality message (4 decimals)
+        assert 0.0 <= float(ra["ambiguity"]) <= 1.0 and 0.0 < float(ra["fitness"]) <= 1.0
+        for key in ("fitness", "ambiguity"):
+            assert float(rb[key]) == pytest.approx(float(ra[key]), abs=2e-4), key
+    assert rows["node"][-1]["reason"] == "register_node rejected the pair (too_few_points)"
 
 
 def test_demo_runs_baselines_on_its_cached_bag_and_fails_in_one_line(tmp_path, capsys):

@@ -335,6 +335,58 @@ def test_max_ambiguity_drops_poses_another_alignment_explains_as_well(ros):
     node.set_parameters([Parameter("output.max_ambiguity", value=1.0)])
 
 
+def _quality(probe, stamp: int):
+    """(status, its key-values) of the ~/quality message with this stamp."""
+    assert rh.wait_for(lambda: stamp in probe.by_stamp("quality"), 5.0)
+    msg = probe.by_stamp("quality")[stamp]
+    (status,) = msg.status
+    return msg, status, {kv.key: kv.value for kv in status.values}
+
+
+def test_every_finished_pair_has_a_quality_message_published_or_rejected(ros):
+    """~/quality: one message per pair the worker finishes, with the pose's stamp and frame:
+    OK and the engine's numbers for a published pose; WARN, the reason and the numbers for a
+    pose a check on the result rejected; WARN with nan for a pair the engine never saw."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.parameter import Parameter
+
+    node, probe, _ = ros
+    t = 3700 * SEC
+    # the fake: fitness 230 % 100 / 100 = 0.30, ambiguity 260 % 100 / 100 = 0.60, 64 pairs
+    _send_and_wait(node, probe, rh.cloud(_pts(230), "a", t), rh.cloud(_pts(260), "b", t))
+    msg, status, v = _quality(probe, t)
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 5.0)
+    assert msg.header.frame_id == "b" == probe.by_stamp("pose")[t].header.frame_id
+    assert status.name == probe.status_name and status.level == DiagnosticStatus.OK
+    assert status.message == "pose published"
+    assert v == {"published": "true", "reason": "", "fitness": "0.3000", "ambiguity": "0.6000",
+                 "correspondences": "64", "engine_ms": "nan"}
+
+    assert node.set_parameters([Parameter("output.max_ambiguity", value=0.4)])[0].successful
+    t += SEC
+    _send_and_wait(node, probe, rh.cloud(_pts(230), "a", t), rh.cloud(_pts(260), "b", t))
+    _, status, v = _quality(probe, t)
+    assert t not in probe.by_stamp("pose")
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message.startswith("ambiguous: ambiguity 0.600 > output.max_ambiguity 0.400")
+    assert (v["published"], v["reason"], v["fitness"], v["ambiguity"]) == \
+        ("false", "ambiguous", "0.3000", "0.6000")
+    node.set_parameters([Parameter("output.max_ambiguity", value=1.0)])
+
+    t += SEC           # 99 source points: the fake's invalid result, fitness 0.99
+    _send_and_wait(node, probe, rh.cloud(_pts(99), "a", t), rh.cloud(_pts(230), "b", t))
+    _, status, v = _quality(probe, t)
+    assert (v["published"], v["reason"], v["fitness"]) == ("false", "invalid_result", "0.9900")
+    assert "degenerate (test)" in status.message
+
+    t += SEC           # 5 points: rejected before the engine, so no numbers
+    _send_and_wait(node, probe, rh.cloud(_pts(5), "a", t), rh.cloud(_pts(230), "b", t))
+    _, status, v = _quality(probe, t)
+    assert status.level == DiagnosticStatus.WARN and status.message.startswith("too_few_points: ")
+    assert v == {"published": "false", "reason": "too_few_points", "fitness": "nan",
+                 "ambiguity": "nan", "correspondences": "", "engine_ms": "nan"}
+
+
 def test_sync_slop_out_of_order_and_unpaired(ros):
     node, probe, _ = ros
     good = _pts(200)

@@ -99,6 +99,50 @@ def test_a_node_that_never_answers_ends_it_after_wait(bag, capsys):
                    "(0 poses so far)"]
 
 
+class RejectingNode(SilentNode):
+    """Answers every pair with a ~/quality message saying it was rejected as ambiguous
+    (fitness 0.25, ambiguity 0.9), never with a pose, as register_node does for such pairs."""
+
+    def __init__(self, namespace: str) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        super().__init__(namespace, die_after_first=False)
+        self.quality = self.node.create_publisher(DiagnosticArray,
+                                                  f"{namespace}/register_node/quality", 10)
+        self.clouds: dict[int, int] = {}
+
+    def _on(self, msg) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        stamp = rh.stamp_of(msg)
+        self.clouds[stamp] = self.clouds.get(stamp, 0) + 1
+        if self.clouds[stamp] == 2:
+            values = {"published": "false", "reason": "ambiguous", "fitness": "0.2500",
+                      "ambiguity": "0.9000"}
+            status = DiagnosticStatus(level=DiagnosticStatus.WARN, message="ambiguous: test",
+                                      values=[KeyValue(key=k, value=v) for k, v in values.items()])
+            self.quality.publish(DiagnosticArray(header=msg.header, status=[status]))
+
+
+def test_a_pair_the_node_rejected_is_recorded_with_its_reason_and_not_waited_for(bag):
+    """A rejected pair's ~/quality answers it: the replay records the reason and the engine's
+    numbers and does not wait out --wait for a pose that will not come."""
+    from cegc_ros.replay import replay_bag
+
+    node = RejectingNode("/rejecting")
+    try:
+        t0 = time.monotonic()
+        result = replay_bag(bag, rate=50.0, timeout=60.0, node_namespace="/rejecting")
+        took = time.monotonic() - t0
+    finally:
+        node.close()
+    assert [(r.T_est, r.rejected, r.fitness, r.ambiguity) for r in result.records] == \
+        [(None, "ambiguous", 0.25, 0.9)] * 3
+    assert took < 30.0        # answered: no 60 s wait for poses
+    from cegc_ros.replay import summary
+    assert summary(result)["rejected"] == {"ambiguous": 3} and summary(result)["poses"] == 0
+
+
 @pytest.fixture
 def stuck_spinner(monkeypatch):
     """replay_bag's spinner stops, then raises as Spinner.stop does when a callback outlives its

@@ -47,6 +47,6 @@ class Outcome:
     reason: str
     fitness: float
     latency_s: float
-    #: the engine's RegistrationResult.ambiguity (offline CEGC rows); NaN for the peers and for
-    #: poses taken from the node's topics, which do not carry it
+    #: the engine's RegistrationResult.ambiguity (CEGC rows: offline from the result, through
+    #: the node from its ~/quality message); NaN for the peers
     ambiguity: float = float("nan")

@@ -116,12 +116,15 @@ def run_through_node(bag: str | Path, pairs: Sequence[EvalPair], methods: Sequen
         outs = []
         for p in pairs:
             rec = by_stamp.get(int(p.info.get("stamp_ns", -1)))
+            fitness = math.nan if rec is None or rec.fitness is None else rec.fitness
+            ambiguity = math.nan if rec is None or rec.ambiguity is None else rec.ambiguity
             if rec is None or rec.T_est is None:
-                outs.append(Outcome(method, p.pair_id, None, False, True,
-                                    "register_node published no pose (rejected or lost)",
-                                    math.nan, math.nan))
+                why = (f"register_node rejected the pair ({rec.rejected})" if rec and rec.rejected
+                       else "register_node published no pose (lost)")
+                outs.append(Outcome(method, p.pair_id, None, False, True, why, fitness, math.nan,
+                                    ambiguity))
             else:
                 outs.append(Outcome(method, p.pair_id, np.asarray(rec.T_est, np.float64), True,
-                                    False, "", math.nan, float(rec.latency_s)))
+                                    False, "", fitness, float(rec.latency_s), ambiguity))
         out[method] = outs
     return out

@@ -10,6 +10,8 @@ Topics (relative names, so namespaces and remapping work):
        ~/pose_with_covariance            geometry_msgs/PoseWithCovarianceStamped
        ~/source_overlap, ~/target_overlap sensor_msgs/PointCloud2 (x, y, z, overlap), own frames
        ~/markers                         visualization_msgs/MarkerArray (target frame)
+       ~/quality                         diagnostic_msgs/DiagnosticArray, one per finished pair
+                                         (pairs mode): published or why not, fitness, ambiguity
        /diagnostics                      diagnostic_msgs/DiagnosticArray, status
                                          '<node's fully qualified name>: registration'
 

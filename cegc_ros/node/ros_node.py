@@ -46,7 +46,7 @@ from cegc_ros.node.params import (
     coerce,
     param_specs,
 )
-from cegc_ros.node.stats import NodeStats, Rejected
+from cegc_ros.node.stats import NodeStats, Rejected, quality_values
 from cegc_ros.node.support import Job, ThrottledLog
 from cegc_ros.refine import UNCONSTRAINED_VARIANCE
 from msg_adapters.markers import correspondence_markers
@@ -342,6 +342,18 @@ class RegistrationNodeMixin:
         except ValueError as err:  # the pose is out; a visual output could not be built
             self.stats.add("output_errors")
             self._log("output_error", f"overlap clouds / markers not published: {err}")
+
+    def publish_quality(self, job: Job, result: Any, rejected: Rejected | None) -> None:
+        """``~/quality`` of one finished pair (pairs mode), stamped and framed as its pose would
+        be: one status named as the node's /diagnostics one, OK with "pose published" or WARN
+        with the rejection's line, and :func:`~cegc_ros.node.stats.quality_values`. A SLAM
+        back-end gates a loop closure on it by stamp; every pair gets one, rejected or not."""
+        status = DiagnosticStatus(name=self.status_name, hardware_id=self.engine.info.device)
+        status.level = DiagnosticStatus.OK if rejected is None else DiagnosticStatus.WARN
+        status.message = "pose published" if rejected is None else f"{rejected.reason}: {rejected}"
+        status.values = [KeyValue(key=k, value=v) for k, v in quality_values(result, rejected).items()]
+        header = Header(stamp=job.source.header.stamp, frame_id=job.target.header.frame_id)
+        self.pub_quality.publish(DiagnosticArray(header=header, status=[status]))
 
     def _publish_extras(self, result: Any, src: Any, tgt: Any, tgt_header: Any) -> None:
         out, mk = self.cfg["output"], self.cfg["markers"]

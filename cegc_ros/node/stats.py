@@ -34,11 +34,32 @@ COUNTERS += tuple(f"dropped.{r}.{side}" for r in DROP_REASONS for side in ("sour
 
 
 class Rejected(Exception):
-    """A pair that produces no pose; ``reason`` is one of :data:`REJECT_REASONS`."""
+    """A pair that produces no pose; ``reason`` is one of :data:`REJECT_REASONS`; ``result``:
+    the engine's result when the engine ran (a check on it rejected the pair), else None."""
 
-    def __init__(self, reason: str, detail: str) -> None:
+    def __init__(self, reason: str, detail: str, result: Any = None) -> None:
         super().__init__(detail)
         self.reason = reason
+        self.result = result
+
+
+def quality_values(result: Any, rejected: Rejected | None) -> dict[str, str]:
+    """The ``~/quality`` key-values of one finished pair: whether its pose went out, why not,
+    and the engine's measures of it ("nan" / "" where the engine gave no result)."""
+    def number(name: str) -> str:
+        value = getattr(result, name, None)
+        return "nan" if value is None else f"{float(value):.4f}"
+
+    corr = getattr(result, "correspondences", None)
+    total = (getattr(result, "timings", None) or {}).get("total")
+    return {
+        "published": str(rejected is None).lower(),
+        "reason": "" if rejected is None else rejected.reason,
+        "fitness": number("fitness"),
+        "ambiguity": number("ambiguity"),
+        "correspondences": "" if corr is None else str(len(corr)),
+        "engine_ms": "nan" if total is None else f"{1e3 * float(total):.1f}",
+    }
 
 
 class NodeStats:

@@ -6,7 +6,7 @@ worker takes it, turns both clouds into points (rejecting bad ones with a reason
 them to the engine (a process of its own, see :mod:`cegc_ros.node.engine_process`), checks
 the result and passes it to the node's ``publish``. Every job ends in exactly one of:
 a published pose (``pairs_out``), a rejection (``rejected.<reason>``), or nothing else:
-``pairs_done`` counts them all.
+``pairs_done`` counts them all; after each, ``report`` hears how it ended (``~/quality``).
 """
 
 from __future__ import annotations
@@ -41,12 +41,16 @@ class RegistrationWorker:
             when it cannot be turned into a pose.
         on_result: the mode's hook, after publish.
         info: logs one line that is not a warning (engine restarts).
+        report: called once per finished job with (job, the engine's result or None,
+            the Rejected that stopped it or None), after publish or the rejection.
     """
 
     def __init__(self, engine: Any, stats: NodeStats, log: ThrottledLog,
                  settings: Callable[[], dict[str, Any]], publish: Callable[[Job, Any], None],
                  on_result: Callable[[Job, Any], None] = lambda job, result: None,
-                 info: Callable[[str], None] = print) -> None:
+                 info: Callable[[str], None] = print,
+                 report: Callable[[Job, Any, Rejected | None], None] = lambda job, result, rej: None
+                 ) -> None:
         self.engine = engine
         self.stats = stats
         self._log = log
@@ -54,6 +58,7 @@ class RegistrationWorker:
         self._publish = publish
         self._on_result = on_result
         self._info = info
+        self._report = report
         self._mailbox = Mailbox()
         self._deferred: list[Callable[[], None]] = []   # run by the worker thread, between jobs
         self._deferred_lock = threading.Lock()
@@ -110,22 +115,31 @@ class RegistrationWorker:
                     return
                 continue
             self.stats.busy = True
+            result, rejected = None, None
             try:
-                self.process(job)
+                result = self.process(job)
             except Rejected as rej:
-                self._reject(rej.reason, str(rej))
+                result, rejected = rej.result, rej
             except Exception as err:  # noqa: BLE001  the node must outlive any bad pair
-                self._reject("engine_error", f"{type(err).__name__}: {err}")
+                rejected = Rejected("engine_error", f"{type(err).__name__}: {err}")
             finally:
+                if rejected is not None:
+                    self._reject(rejected.reason, str(rejected))
                 self.stats.add("pairs_done")
                 self.stats.busy = False
+            try:
+                self._report(job, result, rejected)
+            except Exception as err:  # noqa: BLE001  the pose (or the rejection) stands
+                self.stats.add("output_errors")
+                self._log("output_error", f"~/quality not published: {type(err).__name__}: {err}")
 
     def _reject(self, reason: str, detail: str) -> None:
         self.stats.reject(reason)
         self._log(reason, f"pair rejected ({reason}): {detail}")
 
-    def process(self, job: Job) -> None:
-        """One job, start to end; raises Rejected with the reason it gives no pose."""
+    def process(self, job: Job) -> Any:
+        """One job, start to end: the engine's result, published; raises Rejected with the
+        reason it gives no pose (and the result, when the engine gave one)."""
         cfg = self._settings()
         src_xyz = self.points("source", job.source, cfg["input"].max_points, cfg["preprocess"])
         tgt_xyz = self.points("target", job.target, cfg["input"].max_points, cfg["preprocess"])
@@ -149,20 +163,25 @@ class RegistrationWorker:
             if dropped.isolated:                     # found by the engine, after its voxel grid
                 self.stats.add(f"dropped.isolated.{side}", dropped.isolated)
         if not result.valid:
-            raise Rejected("invalid_result", f"engine result invalid: {result.reason}")
+            raise Rejected("invalid_result", f"engine result invalid: {result.reason}", result)
         self.stats.last_fitness = float(result.fitness)
         self.stats.last_ambiguity = float(result.ambiguity)
         min_fitness = cfg["output"].min_fitness
         if result.fitness < min_fitness:
             raise Rejected("low_fitness", f"fitness {result.fitness:.3f} < "
-                           f"output.min_fitness {min_fitness:.3f}")
+                           f"output.min_fitness {min_fitness:.3f}", result)
         max_ambiguity = cfg["output"].max_ambiguity
         if result.ambiguity > max_ambiguity:
             raise Rejected("ambiguous", f"ambiguity {result.ambiguity:.3f} > "
                            f"output.max_ambiguity {max_ambiguity:.3f}: another alignment "
-                           f"explains the clouds nearly as well")
-        self._publish(job, result)
+                           f"explains the clouds nearly as well", result)
+        try:
+            self._publish(job, result)
+        except Rejected as rej:
+            rej.result = result
+            raise
         self._on_result(job, result)
+        return result
 
     def _restart(self, err: Exception) -> None:
         self.stats.add("engine_restarts")
