@@ -226,3 +226,19 @@ def test_points_thins_every_cloud_to_a_seeded_subset(val_cache, tmp_path, capsys
     assert len(list(csv.DictReader(open(out)))) == 2
     with pytest.raises(ValueError, match="points must be >= 1"):
         thinned(pairs, 0, [0, 1])
+
+
+def test_max_overlap_keeps_only_the_pairs_under_it(val_cache, capsys):
+    """validation_pairs(max_overlap=X): the pairs under X overlap, spread evenly among them;
+    --max-overlap below every pair's overlap is a one-line error naming it."""
+    cache = PC.PairCache(val_cache, kinds=("views",), sensors=("kinect",))
+    ov = cache.overlaps
+    assert len(ov) == 2 and ov.min() < ov.max()
+    cut = float(ov.mean())                               # between the two pairs
+    pairs, idx = select_weights.validation_pairs(val_cache, 40, "kinect", max_overlap=cut)
+    assert list(idx) == [int(ov.argmin())] and pairs[0].info["overlap"] == pytest.approx(ov.min())
+    pairs, idx = select_weights.validation_pairs(val_cache, 40, "kinect")
+    assert list(idx) == [0, 1]
+    assert select_weights.main([str(val_cache), "unused.pt", "--max-overlap", f"{ov.min() / 2:g}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"no kinect different-view pairs under {ov.min() / 2:g} overlap" in err[0]

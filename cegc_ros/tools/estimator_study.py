@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from cegc_ros.tools.select_weights import add_pair_options
+
 
 def capture(registrar: Any, pairs: list[Any], seeds: list[int]) -> list[list[Any]]:
     """Match every pair at every sampling seed: per seed, the pairs' engine.Matched in their
@@ -97,18 +99,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="estimator_study", description=__doc__.splitlines()[0])
     ap.add_argument("cache", type=Path, help="a validation pair cache (cegc-make-pairs --split val)")
     ap.add_argument("checkpoint", nargs="?", default=None, help="weights (default: the shipped ones)")
-    ap.add_argument("--pairs", type=int, default=40)
+    add_pair_options(ap)
     ap.add_argument("--seeds", default="0", metavar="LIST", help="comma-separated preprocess.seed values")
     ap.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="engine settings of the later stages to finish the pairs under (repeatable)")
-    ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
         from cegc_ros.tools.select_weights import note_torch_runtime, sign_test, validation_pairs
         variants = [("defaults", parse_variant(""))] + [(v, parse_variant(v)) for v in args.variant]
-        pairs, _ = validation_pairs(args.cache, args.pairs, args.sensor)
+        pairs, _ = validation_pairs(args.cache, args.pairs, args.sensor, args.max_overlap)
         seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
         registrar = Registrar.from_checkpoint(args.checkpoint, device="cpu")   # None: the shipped weights
         note_torch_runtime("estimator_study", registrar)

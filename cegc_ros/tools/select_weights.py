@@ -186,15 +186,30 @@ def sign_test(ok: np.ndarray, reference: np.ndarray) -> tuple[int, int, float]:
     return won, lost, p
 
 
-def validation_pairs(cache_dir: Path, n: int, sensor: str) -> tuple[list[Any], np.ndarray]:
-    """At most ``n`` different-view pairs of one sensor model spread evenly over a validation
-    pair cache, and their indices in it; ValueError when it holds none."""
+def validation_pairs(cache_dir: Path, n: int, sensor: str, max_overlap: float = 1.0
+                     ) -> tuple[list[Any], np.ndarray]:
+    """At most ``n`` different-view pairs of one sensor model with overlap below
+    ``max_overlap`` (1: all), spread evenly over those of a validation pair cache, and their
+    indices in it; ValueError when it holds none."""
     from cegc_ros.data.pair_cache import PairCache
     cache = PairCache(cache_dir, kinds=("views",), sensors=(sensor,))
-    if len(cache) == 0:
-        raise ValueError(f"{cache_dir}: no {sensor} different-view pairs")
-    idx = np.linspace(0, len(cache) - 1, min(n, len(cache))).astype(int)
+    usable = np.flatnonzero(cache.overlaps < max_overlap) if max_overlap < 1.0 else np.arange(len(cache))
+    if len(usable) == 0:
+        under = f" under {max_overlap:g} overlap" if max_overlap < 1.0 else ""
+        raise ValueError(f"{cache_dir}: no {sensor} different-view pairs{under}")
+    idx = usable[np.linspace(0, len(usable) - 1, min(n, len(usable))).astype(int)]
     return [cache[int(i)] for i in idx], idx
+
+
+def add_pair_options(ap: argparse.ArgumentParser) -> None:
+    """The options that choose the validation pairs (:func:`validation_pairs`)."""
+    ap.add_argument("--pairs", type=int, default=40)
+    ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect",
+                    help="the pairs of this sensor model (default kinect; a LiDAR cache: "
+                         "cegc-make-pairs --split val --lidar-fraction 1 ...)")
+    ap.add_argument("--max-overlap", type=float, default=1.0, metavar="X",
+                    help="only the pairs under this overlap (e.g. 0.3: the low-overlap pairs, "
+                         "where a few-point loss hides among all pairs; default 1: all)")
 
 
 def parse_overrides(items: list[str]):
@@ -227,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="select_weights", description=__doc__.splitlines()[0])
     ap.add_argument("cache", type=Path, help="a validation pair cache (cegc-make-pairs --split val)")
     ap.add_argument("checkpoints", nargs="+", help="checkpoints to compare")
-    ap.add_argument("--pairs", type=int, default=40)
+    add_pair_options(ap)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--peers", default="", help="comma-separated classical peers to score on the same pairs")
     ap.add_argument("--flying-pixels", type=float, default=0.0, metavar="SHARE",
@@ -241,9 +256,6 @@ def main(argv: list[str] | None = None) -> int:
                          "and its recall is pooled over them (a new seed redraws the grid "
                          "sampling, which alone flips ~10%% of the verdicts: docs/pipeline.md); "
                          "default: the one seed of --set or the defaults")
-    ap.add_argument("--sensor", choices=("kinect", "lidar"), default="kinect",
-                    help="the pairs of this sensor model (default kinect; a LiDAR cache: "
-                         "cegc-make-pairs --split val --lidar-fraction 1 ...)")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, the "
                          "confidences' ranking of the true correspondences, how HOCE finds the overlap, "
@@ -253,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         from cegc_ros.data.pair_cache import PairCacheError
         from cegc_ros.engine import CheckpointError, Registrar
         pre, eng = parse_overrides(args.set)
-        pairs, idx = validation_pairs(args.cache, args.pairs, args.sensor)
+        pairs, idx = validation_pairs(args.cache, args.pairs, args.sensor, args.max_overlap)
         if args.points > 0:
             from cegc_ros.data.corruption import thinned
             pairs = thinned(pairs, args.points, idx)                     # seeded by cache index
