@@ -295,6 +295,11 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
             """The node answered the item: a pose, or a quality message saying it has none."""
             return stamp in answers or quality.get(stamp, {}).get("published") == "false"
 
+        def settled(stamp: int) -> bool:
+            """Answered, and its quality message in too when the node publishes them (it comes
+            on a topic of its own, so it may arrive after the pose)."""
+            return done(stamp) and (stamp in quality or not quality)
+
         def on_diag(msg: Any) -> None:
             for st in msg.status:
                 if st.name == status_name:
@@ -369,9 +374,11 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                         with answered:
                             answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
                                               >= base + sent, timeout)
+                    with answered:
+                        answered.wait_for(lambda: all(settled(s) for s in order if done(s)), timeout)
                 if not lockstep:
                     with answered:
-                        answered.wait_for(lambda: all(done(s) for s in order), timeout)
+                        answered.wait_for(lambda: all(settled(s) for s in order), timeout)
             finally:
                 bar.close()
             with lock:
