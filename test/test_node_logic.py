@@ -336,7 +336,8 @@ def test_max_ambiguity_drops_poses_another_alignment_explains_as_well(ros):
 
 
 def _quality(probe, stamp: int):
-    """(status, its key-values) of the ~/quality message with this stamp."""
+    """(the message, its one status, the status's key-values) of the ~/quality message with
+    this stamp."""
     assert rh.wait_for(lambda: stamp in probe.by_stamp("quality"), 5.0)
     msg = probe.by_stamp("quality")[stamp]
     (status,) = msg.status

@@ -62,6 +62,12 @@ _PTYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTE
 EngineFactory = Callable[[Any, Any], Any]
 
 
+def pair_header(job: Job) -> Header:
+    """The header of a pair's outputs in the target frame (pose, markers, ~/quality): the
+    source cloud's stamp, the target cloud's frame."""
+    return Header(stamp=job.source.header.stamp, frame_id=job.target.header.frame_id)
+
+
 def descriptor(spec: ParamSpec) -> ParameterDescriptor:
     """The ROS descriptor of a parameter: type, description, range, read-only."""
     d = ParameterDescriptor(name=spec.name, type=_PTYPES[spec.kind],
@@ -318,7 +324,7 @@ class RegistrationNodeMixin:
     def publish_result(self, job: Job, result: Any) -> None:
         """Pose, pose with covariance, then the overlap clouds and markers of one result."""
         src, tgt = job.source, job.target
-        tgt_header = Header(stamp=src.header.stamp, frame_id=tgt.header.frame_id)
+        tgt_header = pair_header(job)
         try:
             pose = pose_stamped(result.T_target_source, tgt_header)
         except ValueError as err:
@@ -352,8 +358,7 @@ class RegistrationNodeMixin:
         status.level = DiagnosticStatus.OK if rejected is None else DiagnosticStatus.WARN
         status.message = "pose published" if rejected is None else f"{rejected.reason}: {rejected}"
         status.values = [KeyValue(key=k, value=v) for k, v in quality_values(result, rejected).items()]
-        header = Header(stamp=job.source.header.stamp, frame_id=job.target.header.frame_id)
-        self.pub_quality.publish(DiagnosticArray(header=header, status=[status]))
+        self.pub_quality.publish(DiagnosticArray(header=pair_header(job), status=[status]))
 
     def _publish_extras(self, result: Any, src: Any, tgt: Any, tgt_header: Any) -> None:
         out, mk = self.cfg["output"], self.cfg["markers"]
