@@ -41,3 +41,33 @@ def test_curve_rows_per_snapshot_and_resume(tmp_path, monkeypatch, capsys):
     assert learning_curve.main([str(snaps), "--bag", str(tmp_path / "bag"), "--out", str(out)]) == 0
     assert "step" not in capsys.readouterr().out                # nothing evaluated twice
     assert learning_curve.main([str(tmp_path), "--bag", str(tmp_path / "bag")]) == 1
+
+
+def test_low_overlap_validation_column_matches_select_weights(tmp_path, val_cache, capsys):
+    """--val-cache scores each snapshot on the validation cache's pairs under --max-overlap at
+    --seed, the same number select_weights prints for that checkpoint, pairs and seed."""
+    import pytest
+
+    from cegc_ros.tools import select_weights
+    snaps = tmp_path / "snapshots"
+    torch.manual_seed(0)
+    cfg = ModelConfig(agnn_dims=(16, 16, 32), feat_dim=32, attn_heads=2, attn_layers=1, cams_dim=8, hoce_topk=4)
+    save_checkpoint(snaps / "step_0000300.pt", CEGC(cfg), {"step": 300})
+    out = tmp_path / "curve"
+    assert learning_curve.main([str(snaps), "--val-cache", str(val_cache), "--max-overlap", "1",
+                                "--val-pairs", "2", "--seed", "3", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "learning_curve.csv").open()))
+    assert [(r["step"], r["low_pairs"], r["test_recall"], r["test_pairs"]) for r in rows] == [("300", "2", "", "0")]
+    capsys.readouterr()
+    assert select_weights.main([str(val_cache), str(snaps / "step_0000300.pt"), "--pairs", "2",
+                                "--seeds", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert f"recall {float(rows[0]['low_recall']):.3f} on 2 pairs" in printed
+    # neither set: a usage error, exit 2
+    with pytest.raises(SystemExit) as exc:
+        learning_curve.main([str(snaps), "--out", str(out)])
+    assert exc.value.code == 2
+    # a cache without pairs under the overlap asked for: one line, exit 1
+    assert learning_curve.main([str(snaps), "--val-cache", str(val_cache), "--max-overlap", "0.0001",
+                                "--out", str(tmp_path / "none")]) == 1
+    assert "no kinect different-view pairs under" in capsys.readouterr().err
