@@ -4,7 +4,9 @@ A subprocess node (real engine, small config) gets a generated camera sequence t
 room (cegc_ros/data/sequences.py) one cloud at a time (the next after the odometry of the
 last arrived, so no cloud is dropped by the node's one-slot mailbox); the test checks the
 frames, stamps, covariance and the final pose against ground truth, the bounded path, the
-pose against the keyframe, a bad cloud counted and skipped, and /diagnostics.
+pose against the keyframe, a bad cloud counted and skipped, ~/quality and /diagnostics.
+The ~/quality values of accepted and rejected clouds against the odometry's own frames are
+checked without DDS (the node's code, the echo stand-in engine inline, recording publishers).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from cegc_ros.data.sequences import FRAME_ID, make_room_sequence
 from cegc_ros.engine import default_weights
+from cegc_ros.node.ros_node import RegistrationNodeMixin
 from cegc_ros.spinning import Spinner
 
 CHECKPOINT = Path(os.environ.get("CEGC_TEST_CHECKPOINT", default_weights()))
@@ -35,8 +39,8 @@ NODE_ARGS = ["--ros-args", "--params-file", f"{rh.REPO}/params/register_node.yam
 
 
 def make_seq_probe(context, node: str = "register_node"):
-    """Publishes `cloud`; records ~/odometry, ~/path, ~/pose, ~/pose_with_covariance, /tf and
-    /diagnostics of the node under test."""
+    """Publishes `cloud`; records ~/odometry, ~/path, ~/pose, ~/pose_with_covariance,
+    ~/quality, /tf and /diagnostics of the node under test."""
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from nav_msgs.msg import Odometry, Path
@@ -53,7 +57,8 @@ def make_seq_probe(context, node: str = "register_node"):
             qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = self.create_publisher(PointCloud2, "/cloud", qos)
             outputs = {"odometry": Odometry, "path": Path, "pose": PoseStamped,
-                       "pose_with_covariance": PoseWithCovarianceStamped}
+                       "pose_with_covariance": PoseWithCovarianceStamped,
+                       "quality": DiagnosticArray}
             for name, kind in outputs.items():
                 self.create_subscription(kind, f"/{node}/{name}", self.keeper(name), 50)
             self.create_subscription(DiagnosticArray, "/diagnostics", self.keeper("diagnostics"),
@@ -183,7 +188,23 @@ def test_sequence_gives_odometry_near_ground_truth_and_skips_a_bad_cloud(seq_nod
     assert np.linalg.norm(T_kf[:3, 3]) <= 0.5 + 1e-6       # sequential.keyframe_max_translation
     assert len(probe.by_stamp("pose_with_covariance")) == NUM_CLOUDS
 
+    # ~/quality: one per cloud, the bad one too, stamped and framed as ~/pose; the methods and
+    # keyframes it names add up to the odometry's counters.
+    assert rh.wait_for(lambda: len(probe.by_stamp("quality")) == NUM_CLOUDS + 1, 10.0)
+    assert len(probe.outputs("quality")) == NUM_CLOUDS + 1
+    quality = {s: {kv.key: kv.value for kv in m.status[0].values}
+               for s, m in probe.by_stamp("quality").items()}
+    assert all(m.header.frame_id == FRAME_ID for m in probe.outputs("quality"))
+    bad = quality.pop(bad_stamp)
+    assert (bad["published"], bad["reason"], bad["method"]) == ("false", "empty_cloud", "")
+    assert all(q["published"] == "true" and q["reason"] == "" for q in quality.values())
+    assert quality[int(seq.stamps_ns[0])]["method"] == "first"
+    methods = [q["method"] for q in quality.values()]
+
     d = _fresh_diag(probe)
+    assert methods.count("icp") == int(d["tracked"])
+    assert methods.count("global") == int(d["recoveries"])
+    assert sum(q["keyframe"] == "true" for q in quality.values()) == int(d["keyframes"])
     assert d["mode"] == "sequential"
     assert int(d["rejected.empty_cloud"]) == 1 and int(d["pairs_rejected"]) == 1
     assert int(d["pairs_out"]) == NUM_CLOUDS
@@ -268,3 +289,115 @@ def test_lockstep_moves_on_after_a_cloud_the_node_rejects(seq_node, sequence, tm
     result = replay_bag(bag, lockstep=True, pair_timeout=60.0, timeout=10.0)
     assert [r.T_est is not None for r in result.records] == [True, True, False, True]
     assert int(_fresh_diag(probe)["rejected.empty_cloud"]) == rejected + 1
+
+
+class _RecordingNode(RegistrationNodeMixin):
+    """The node's own code (its outputs, ``publish_quality``, the sequential mode and its
+    worker) with the echo stand-in engine inline and no rclpy: publishers record what they
+    get (``published[topic]``)."""
+
+    def __init__(self) -> None:
+        from cegc_ros.node.engine_process import InlineEngine
+        from cegc_ros.node.params import build_sections
+        from cegc_ros.node.stats import NodeStats
+        from cegc_ros.node.support import ThrottledLog
+        from fake_engines import echo
+
+        self.cfg = build_sections({"input.mode": "sequential"})
+        self.stats = NodeStats(self.cfg["diagnostics"].window)
+        self._log = ThrottledLog(lambda text: None, 1.0)
+        self.logger = types.SimpleNamespace(info=lambda text: None, warning=lambda text: None)
+        self.engine = InlineEngine(echo(self.cfg["preprocess"], self.cfg["engine"]))
+        self.engine.start()
+        self.published: dict[str, list] = {}
+        self.create_mode()
+        self.create_outputs()
+        self.start_worker()
+
+    def create_publisher(self, kind, topic, depth):
+        return types.SimpleNamespace(publish=self.published.setdefault(topic, []).append)
+
+    def create_timer(self, period, callback):
+        return None
+
+    def get_logger(self):
+        return self.logger
+
+    def get_fully_qualified_name(self) -> str:
+        return "/register_node"
+
+
+def test_quality_has_one_message_per_cloud_accepted_or_rejected():
+    """~/quality in sequential mode, without DDS: each cloud's message is stamped and framed as
+    its ~/pose; OK with how it was registered and the odometry frame's fitness for an accepted
+    cloud; WARN with the reason for one not registered (the global registration's numbers in)
+    and for one the odometry refused (no frame: no numbers)."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from test_sequential import World, pose
+
+    node = _RecordingNode()
+    frames = {}                                  # stamp -> the odometry's FrameResult
+    feed = node.mode.odometry.feed
+
+    def recording_feed(stamp_ns, cloud):
+        frames[stamp_ns] = feed(stamp_ns, cloud)
+        return frames[stamp_ns]
+
+    node.mode.odometry.feed = recording_feed
+    quality = node.published["~/quality"]
+    sec = 10**9
+    w = World()
+    noise = np.random.default_rng(0).uniform(-3.0, 3.0, (3000, 3))    # nothing like the room
+    clouds = [(10 * sec, w.cloud(pose())), (11 * sec, w.cloud(pose(5.0, (0.1, 0.0, 0.0)))),
+              (12 * sec, noise), (9 * sec, w.cloud(pose()))]          # the last: going back
+    try:
+        for k, (stamp, xyz) in enumerate(clouds):
+            node.on_cloud("cloud", rh.cloud(xyz, "sensor", stamp))
+            assert rh.wait_for(lambda n=k + 1: len(quality) == n, 60.0), k
+    finally:
+        node.close()
+    by_stamp = {rh.stamp_of(m): m for m in quality}
+    assert sorted(by_stamp) == sorted(s for s, _ in clouds)        # one per cloud
+    poses = {rh.stamp_of(m): m for m in node.published["~/pose"]}
+    assert sorted(poses) == [10 * sec, 11 * sec]
+
+    def status(stamp):
+        msg = by_stamp[stamp]
+        (st,) = msg.status
+        assert msg.header.frame_id == "sensor" and st.name == "/register_node: registration"
+        return st, {kv.key: kv.value for kv in st.values}
+
+    for stamp, method in ((10 * sec, "first"), (11 * sec, "icp")):
+        st, v = status(stamp)
+        frame = frames[stamp]
+        assert by_stamp[stamp].header == poses[stamp].header
+        assert st.level == DiagnosticStatus.OK and st.message == "pose published"
+        assert (v["published"], v["reason"], v["method"]) == ("true", "", method)
+        assert frame.method == method
+        assert v["fitness"] == f"{frame.fitness:.4f}" and v["overlap"] == f"{frame.overlap:.4f}"
+        assert v["keyframe"] == str(frame.new_keyframe).lower() and v["detail"] == frame.reason
+        # tracking sufficed: no global registration, so none of its numbers
+        assert (v["ambiguity"], v["correspondences"], v["engine_ms"]) == ("nan", "", "nan")
+    assert status(10 * sec)[1]["keyframe"] == "true"
+
+    st, v = status(12 * sec)     # tracking fails, the echo's global answer fails its ICP check
+    frame = frames[12 * sec]
+    assert not frame.accepted and frame.registration is not None
+    assert st.level == DiagnosticStatus.WARN
+    assert st.message == f"not_registered: cloud not registered: {frame.reason}"
+    assert v == {"published": "false", "reason": "not_registered",
+                 "detail": f"cloud not registered: {frame.reason}", "method": "none",
+                 "keyframe": "false", "fitness": f"{frame.fitness:.4f}",
+                 "overlap": f"{frame.overlap:.4f}", "ambiguity": "0.0000",   # the echo's
+                 "correspondences": "32", "engine_ms": "nan"}
+
+    st, v = status(9 * sec)                      # refused by the odometry: no frame
+    assert 9 * sec not in frames
+    assert st.level == DiagnosticStatus.WARN and st.message.startswith(
+        "unusable_cloud: cloud refused by the odometry: cloud stamp")
+    assert (v["published"], v["reason"], v["method"], v["keyframe"], v["fitness"]) == \
+        ("false", "unusable_cloud", "", "false", "nan")
+    assert v["detail"] == st.message.removeprefix("unusable_cloud: ")
+    assert node.stats.count("rejected.not_registered") == 1
+    assert node.stats.count("rejected.unusable_cloud") == 1

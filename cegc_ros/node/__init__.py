@@ -11,7 +11,9 @@ Topics (relative names, so namespaces and remapping work):
        ~/source_overlap, ~/target_overlap sensor_msgs/PointCloud2 (x, y, z, overlap), own frames
        ~/markers                         visualization_msgs/MarkerArray (target frame)
        ~/quality                         diagnostic_msgs/DiagnosticArray, one per finished pair
-                                         (pairs mode): published or why not, fitness, ambiguity
+                                         (sequential mode: per cloud), as its pose's header:
+                                         published or why not, fitness, ambiguity (sequential:
+                                         also how registered, keyframe)
        /diagnostics                      diagnostic_msgs/DiagnosticArray, status
                                          '<node's fully qualified name>: registration'
 

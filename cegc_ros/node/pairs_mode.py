@@ -56,16 +56,13 @@ class PairsMode:
         self.pairer.flush()
 
     def create_outputs(self, node: Any) -> None:
-        """Besides the node's common outputs, ``~/quality``: one message per finished pair
-        (:meth:`RegistrationNodeMixin.publish_quality`)."""
-        from diagnostic_msgs.msg import DiagnosticArray
-        node.pub_quality = node.create_publisher(DiagnosticArray, "~/quality", 10)
+        """No outputs beyond the node's common ones."""
 
     def make_worker(self, node: Any) -> Any:
         """The worker that registers each pair with the node's engine and publishes it."""
         return RegistrationWorker(node.engine, node.stats, node._log, settings=lambda: node.cfg,
                                   publish=node.publish_result, on_result=self.on_result,
-                                  info=node.get_logger().info, report=node.publish_quality)
+                                  info=node.get_logger().info, report=node.report_pair)
 
     def diagnostics(self, stats: Any) -> dict[str, str]:
         """No /diagnostics key-values of its own."""

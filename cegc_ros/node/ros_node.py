@@ -147,6 +147,7 @@ class RegistrationNodeMixin:
         self.pub_src_overlap = self.create_publisher(PointCloud2, "~/source_overlap", 5)
         self.pub_tgt_overlap = self.create_publisher(PointCloud2, "~/target_overlap", 5)
         self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 5)
+        self.pub_quality = self.create_publisher(DiagnosticArray, "~/quality", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_prev = (0, 0)
         self.diag_timer = self.create_timer(self.cfg["diagnostics"].period,
@@ -349,16 +350,23 @@ class RegistrationNodeMixin:
             self.stats.add("output_errors")
             self._log("output_error", f"overlap clouds / markers not published: {err}")
 
-    def publish_quality(self, job: Job, result: Any, rejected: Rejected | None) -> None:
-        """``~/quality`` of one finished pair (pairs mode), stamped and framed as its pose would
-        be: one status named as the node's /diagnostics one, OK with "pose published" or WARN
-        with the rejection's line, and :func:`~cegc_ros.node.stats.quality_values`. A SLAM
-        back-end gates a loop closure on it by stamp; every pair gets one, rejected or not."""
+    def publish_quality(self, header: Header, values: dict[str, str],
+                        rejected: Rejected | None) -> None:
+        """One ``~/quality`` message (both modes), with the ``header`` of the pose it is about
+        (published or not): one status named as the node's /diagnostics one, OK with "pose
+        published" or WARN with the rejection's line, and the mode's key-``values``. A SLAM
+        back-end gates a loop closure (or watches the odometry) on it by stamp; every finished
+        job gets one, rejected or not."""
         status = DiagnosticStatus(name=self.status_name, hardware_id=self.engine.info.device)
         status.level = DiagnosticStatus.OK if rejected is None else DiagnosticStatus.WARN
         status.message = "pose published" if rejected is None else f"{rejected.reason}: {rejected}"
-        status.values = [KeyValue(key=k, value=v) for k, v in quality_values(result, rejected).items()]
-        self.pub_quality.publish(DiagnosticArray(header=pair_header(job), status=[status]))
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        self.pub_quality.publish(DiagnosticArray(header=header, status=[status]))
+
+    def report_pair(self, job: Job, result: Any, rejected: Rejected | None) -> None:
+        """The pairs mode's worker ``report``: ``~/quality`` of one finished pair, stamped and
+        framed as its pose (:func:`pair_header`), :func:`~cegc_ros.node.stats.quality_values`."""
+        self.publish_quality(pair_header(job), quality_values(result, rejected), rejected)
 
     def _publish_extras(self, result: Any, src: Any, tgt: Any, tgt_header: Any) -> None:
         out, mk = self.cfg["output"], self.cfg["markers"]

@@ -20,6 +20,9 @@ chained along the keyframes), ``~/path`` (nav_msgs/Path, the last ``sequential.p
 poses), ``~/pose`` / ``~/pose_with_covariance`` (the cloud against its keyframe, in the cloud's
 frame, as in pairs mode), ``~/source_overlap`` / ``~/target_overlap`` / ``~/markers`` when the
 global registration ran, and ``/tf`` where tf2_msgs is installed and ``sequential.publish_tf``.
+Per processed cloud, accepted or rejected: ``~/quality`` (diagnostic_msgs/DiagnosticArray,
+stamped and framed as ``~/pose``: published or why not, how the cloud was registered, fitness,
+keyframe, the global registration's ambiguity: :func:`cegc_ros.node.stats.odometry_quality_values`).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import numpy as np
 
 from cegc_ros.config import SequentialConfig, SyncConfig
 from cegc_ros.node.engine_process import EngineDied, EngineError
-from cegc_ros.node.stats import Rejected
+from cegc_ros.node.stats import Rejected, odometry_quality_values
 from cegc_ros.node.support import Job, Offer, percentiles_ms
 from cegc_ros.node.worker import RegistrationWorker
 from cegc_ros.sequential import KeyframeOdometry
@@ -44,6 +47,14 @@ SEQUENTIAL_REJECT_REASONS = (
     "unusable_cloud",    # the odometry refused it: too few voxels, a stamp not after the last
     "not_registered",    # neither tracking nor global registration passed sequential.min_fitness
 )
+
+
+def cloud_header(job: Job) -> Any:
+    """The header of a cloud's outputs in its own frame (``~/pose``, ``~/quality``): the cloud's
+    stamp and frame."""
+    from std_msgs.msg import Header
+
+    return Header(stamp=job.source.header.stamp, frame_id=job.source.header.frame_id)
 
 
 class SequentialMode:
@@ -124,15 +135,15 @@ class SequentialMode:
 
         cfg: SequentialConfig = node.cfg["sequential"]
         msg = job.source
-        stamp, frame_id = msg.header.stamp, msg.header.frame_id
-        odom_header = Header(stamp=stamp, frame_id=node.cfg["output"].odom_frame)
-        cloud_header = Header(stamp=stamp, frame_id=frame_id)
+        frame_id = msg.header.frame_id
+        odom_header = Header(stamp=msg.header.stamp, frame_id=node.cfg["output"].odom_frame)
+        own_header = cloud_header(job)
         try:
             odom = odometry(frame.T_odom_cloud, frame.covariance, odom_header, frame_id)
             path_pose = PoseStamped(header=odom_header, pose=matrix_to_pose(frame.T_odom_cloud))
-            pose = pose_stamped(frame.T_keyframe_cloud, cloud_header)
+            pose = pose_stamped(frame.T_keyframe_cloud, own_header)
             pose_cov = pose_with_covariance_stamped(frame.T_keyframe_cloud,
-                                                    frame.keyframe_covariance, cloud_header)
+                                                    frame.keyframe_covariance, own_header)
             tf = (transform_stamped(frame.T_odom_cloud, odom_header, frame_id)
                   if self.pub_tf is not None else None)
         except ValueError as err:
@@ -150,10 +161,17 @@ class SequentialMode:
         reg = frame.registration
         if reg is not None and getattr(reg, "valid", False) and hasattr(reg, "weights"):
             try:   # the global registration's view: this cloud onto the keyframe (same frame)
-                node._publish_extras(reg, msg, msg, cloud_header)
+                node._publish_extras(reg, msg, msg, own_header)
             except ValueError as err:
                 node.stats.add("output_errors")
                 node._log("output_error", f"overlap clouds / markers not published: {err}")
+
+    def report(self, node: Any, job: Job, frame: Any, rejected: Rejected | None) -> None:
+        """The worker's ``report``: ``~/quality`` of one processed cloud, accepted or not, stamped
+        and framed as its ``~/pose`` (:func:`cloud_header`); ``frame``: the odometry's
+        FrameResult, None when the cloud never reached the odometry."""
+        node.publish_quality(cloud_header(job), odometry_quality_values(frame, rejected),
+                             rejected)
 
     def frame_time(self, seconds: float) -> None:
         self._frame_times.append(seconds)
@@ -169,7 +187,8 @@ class OdometryWorker(RegistrationWorker):
     def __init__(self, mode: SequentialMode, node: Any) -> None:
         super().__init__(node.engine, node.stats, node._log, settings=lambda: node.cfg,
                          publish=lambda job, frame: mode.publish(node, job, frame),
-                         info=node.get_logger().info)
+                         info=node.get_logger().info,
+                         report=lambda job, frame, rej: mode.report(node, job, frame, rej))
         self.mode = mode
         self._engine_failure = ""
         self._sequential: SequentialConfig | None = None   # the settings last given to it
@@ -198,8 +217,9 @@ class OdometryWorker(RegistrationWorker):
         self.stats.engine_time(time.perf_counter() - t0)
         return result
 
-    def process(self, job: Job) -> None:
-        """One cloud; raises Rejected with the reason it gives no odometry."""
+    def process(self, job: Job) -> Any:
+        """One cloud: the odometry's FrameResult, published; raises Rejected with the reason it
+        gives no odometry (and the frame, when the odometry took the cloud)."""
         cfg = self._settings()
         xyz = self.points("cloud", job.source, cfg["input"].max_points, cfg["preprocess"])
         odo = self.mode.odometry
@@ -216,8 +236,7 @@ class OdometryWorker(RegistrationWorker):
             self._info(f"odometry started at stamp {frame.stamp_ns} ns: "
                        f"{odo.distances.describe()}")
         if not frame.accepted:
-            if self._engine_failure:
-                raise Rejected("engine_error", f"cloud not registered: {frame.reason}")
-            raise Rejected("not_registered", f"cloud not registered: {frame.reason}")
+            reason = "engine_error" if self._engine_failure else "not_registered"
+            raise Rejected(reason, f"cloud not registered: {frame.reason}", frame)
         self.stats.last_fitness = float(frame.fitness)
-        self._publish(job, frame)
+        return self.deliver(job, frame)

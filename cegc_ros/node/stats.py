@@ -35,7 +35,8 @@ COUNTERS += tuple(f"dropped.{r}.{side}" for r in DROP_REASONS for side in ("sour
 
 class Rejected(Exception):
     """A pair that produces no pose; ``reason`` is one of :data:`REJECT_REASONS`; ``result``:
-    the engine's result when the engine ran (a check on it rejected the pair), else None."""
+    the job's result when there was one (the engine's, a check on it rejected the pair; in
+    sequential mode the odometry's frame), else None."""
 
     def __init__(self, reason: str, detail: str, result: Any = None) -> None:
         super().__init__(detail)
@@ -43,23 +44,44 @@ class Rejected(Exception):
         self.result = result
 
 
+def _number(obj: Any, name: str) -> str:
+    """``obj.<name>`` with 4 decimals; "nan" where there is none (``obj`` None included)."""
+    value = getattr(obj, name, None)
+    return "nan" if value is None else f"{float(value):.4f}"
+
+
 def quality_values(result: Any, rejected: Rejected | None) -> dict[str, str]:
     """The ``~/quality`` key-values of one finished pair: whether its pose went out, why not,
     and the engine's measures of it ("nan" / "" where the engine gave no result)."""
-    def number(name: str) -> str:
-        value = getattr(result, name, None)
-        return "nan" if value is None else f"{float(value):.4f}"
-
     corr = getattr(result, "correspondences", None)
     total = (getattr(result, "timings", None) or {}).get("total")
     return {
         "published": str(rejected is None).lower(),
         "reason": "" if rejected is None else rejected.reason,
-        "fitness": number("fitness"),
-        "ambiguity": number("ambiguity"),
+        "fitness": _number(result, "fitness"),
+        "ambiguity": _number(result, "ambiguity"),
         "correspondences": "" if corr is None else str(len(corr)),
         "engine_ms": "nan" if total is None else f"{1e3 * float(total):.1f}",
     }
+
+
+def odometry_quality_values(frame: Any, rejected: Rejected | None) -> dict[str, str]:
+    """The ``~/quality`` key-values of one cloud in sequential mode. ``frame``: the odometry's
+    FrameResult (cegc_ros/sequential/odometry.py), None when the cloud never reached it.
+
+    :func:`quality_values` of the global registration (``ambiguity``, ``correspondences``,
+    ``engine_ms``: "nan" / "" when it did not run), with the odometry's own ``fitness`` and
+    ``overlap`` (of the accepted, or last tried, registration) in place of the engine's, how the
+    cloud was registered (``method``: first / icp / global; none when rejected; "" without a
+    frame), whether it became the ``keyframe``, and the ``detail``: the rejection's, or the
+    odometry's note on a published cloud (why global registration or a new keyframe).
+    """
+    values = quality_values(getattr(frame, "registration", None), rejected)
+    values.update(fitness=_number(frame, "fitness"), overlap=_number(frame, "overlap"),
+                  method=getattr(frame, "method", ""),
+                  keyframe=str(bool(getattr(frame, "new_keyframe", False))).lower(),
+                  detail=str(rejected) if rejected is not None else frame.reason)
+    return values
 
 
 class NodeStats:

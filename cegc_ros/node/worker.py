@@ -41,8 +41,9 @@ class RegistrationWorker:
             when it cannot be turned into a pose.
         on_result: the mode's hook, after publish.
         info: logs one line that is not a warning (engine restarts).
-        report: called once per finished job with (job, the engine's result or None,
-            the Rejected that stopped it or None), after publish or the rejection.
+        report: called once per finished job with (job, its result or None: what
+            :meth:`process` returned or the Rejected carried, the Rejected that stopped it or
+            None), after publish or the rejection.
     """
 
     def __init__(self, engine: Any, stats: NodeStats, log: ThrottledLog,
@@ -175,6 +176,11 @@ class RegistrationWorker:
             raise Rejected("ambiguous", f"ambiguity {result.ambiguity:.3f} > "
                            f"output.max_ambiguity {max_ambiguity:.3f}: another alignment "
                            f"explains the clouds nearly as well", result)
+        return self.deliver(job, result)
+
+    def deliver(self, job: Job, result: Any) -> Any:
+        """Publish an accepted ``result`` and tell the mode (``on_result``); a Rejected from
+        publish leaves carrying the result, for ``report``."""
         try:
             self._publish(job, result)
         except Rejected as rej:
