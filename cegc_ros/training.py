@@ -74,6 +74,9 @@ class Stage:
     max_overlap: float = 1.0
     low_overlap_share: float = 0.0   # share of different-view draws made among the pair cache's
     low_overlap_max: float = 0.3     # pairs of overlap in [min_overlap, low_overlap_max] (0: off)
+    # support points per cloud the network's ``points`` are drawn from (0: preprocess.support_points,
+    # 1024); a network trained at 1024 points runs with 2048 (the engine's 2 : 1)
+    support_points: int = 0
 
 
 @dataclass
@@ -198,7 +201,8 @@ class PairSampler:
 
     def sample(self, rng: np.random.Generator, stage: Stage) -> dict[str, torch.Tensor]:
         pair = self.raw(rng, stage)
-        return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng)
+        return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng,
+                               stage.support_points)
 
     def _different_views(self, rng: np.random.Generator, stage: Stage) -> Any:
         """A different-view pair with overlap in [stage.min_overlap, stage.max_overlap], or None."""
@@ -229,12 +233,13 @@ class PairSampler:
         return self._bands[key]
 
     def to_tensors(self, source: np.ndarray, target: np.ndarray, T: np.ndarray, points: int,
-                   rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        """The engine's bound + features stages (cegc_ros/engine.py), then tensors with a batch axis."""
+                   rng: np.random.Generator, support_points: int = 0) -> dict[str, torch.Tensor]:
+        """The engine's bound + features stages (cegc_ros/engine.py) with ``points`` network points
+        drawn from ``support_points`` (0: preprocess.support_points), then tensors with a batch axis."""
         pre = self.preprocess
         bounded = bound_pair(source, target, pre, Registrar.MIN_POINTS)
-        ps, pt, norm = prepare_pair(bounded.source, bounded.target, points, pre.support_points, rng, self.features,
-                                    pre.sampling)
+        ps, pt, norm = prepare_pair(bounded.source, bounded.target, points, support_points or pre.support_points,
+                                    rng, self.features, pre.sampling)
         R, t_n = norm.to_normalised(T)
         extra = fpfh_neighbours(ps.desc, pt.desc, self.fpfh_k)
 

@@ -558,3 +558,24 @@ def test_a_distilled_student_starts_from_the_teachers_tensors_and_leaves_it_froz
     raw["model"]["fpfh_radius"] = 0.3
     with pytest.raises(ValueError, match="other input features"):
         Trainer(Config.from_dict(raw), device="cpu", fragments=frags, val_fragments=frags, progress=False)
+
+
+def test_a_stage_draws_its_network_points_from_its_own_support_points(monkeypatch):
+    """Stage.support_points reaches the features stage (a network trained at 1024 points runs
+    on 2048 support points, as the engine's 2 : 1); 0 keeps preprocess.support_points."""
+    from cegc_ros import training
+    from cegc_ros.config import PreprocessConfig
+    seen = []
+    real = training.prepare_pair
+
+    def spy(source, target, points, support, *args, **kwargs):
+        seen.append((points, support))
+        return real(source, target, points, support, *args, **kwargs)
+    monkeypatch.setattr(training, "prepare_pair", spy)
+    sampler = PairSampler(fragments(2), 0.0, {"with_features": True})
+    wide = sampler.sample(np.random.default_rng(0), Stage(10**9, 45.0, 256, support_points=512))
+    plain = sampler.sample(np.random.default_rng(0), Stage(10**9, 45.0, 256))
+    assert seen == [(256, 512), (256, PreprocessConfig().support_points)]
+    assert wide["src"].shape == plain["src"].shape == (1, 256, 3)
+    # the same seed, other support points: other network points
+    assert not torch.equal(wide["src"], plain["src"])
