@@ -3,9 +3,13 @@
 A thin layer over :class:`cegc_ros.engine.Registrar`: parameters -> pair ``source_cloud`` with
 ``target_cloud`` by stamp -> ``cloud_to_xyz`` -> engine (in a process of its own) -> messages.
 
+With ``input.mode: sequential`` it reads one ``cloud`` stream into keyframe odometry instead
+(``sequential_mode``; docs/sequential.md): ``~/odometry``, ``~/path`` and /tf besides the outputs
+below, each cloud against its keyframe.
+
 Topics (relative names, so namespaces and remapping work):
 
-  in   source_cloud, target_cloud        sensor_msgs/PointCloud2
+  in   source_cloud, target_cloud        sensor_msgs/PointCloud2 (sequential mode: cloud)
   out  ~/pose                            geometry_msgs/PoseStamped (T_target_source, target frame)
        ~/pose_with_covariance            geometry_msgs/PoseWithCovarianceStamped
        ~/source_overlap, ~/target_overlap sensor_msgs/PointCloud2 (x, y, z, overlap), own frames
@@ -22,8 +26,9 @@ kind), counted on /diagnostics and skipped; a start-up problem (parameter, check
 the node with one ``[FATAL]`` line and exit code 1. docs/node.md has the details.
 
 Modules: ``params`` (parameters from cegc_ros.config), ``support`` (mailbox, throttled log),
-``stats`` (counters), ``pairs_mode`` (the pairing mode), ``engine_process`` (the engine in a
-child process), ``worker`` (the thread that feeds it), ``ros_node`` (rclpy), ``main``.
+``stats`` (counters), ``pairs_mode`` (the pairing mode), ``sequential_mode`` (keyframe
+odometry), ``engine_process`` (the engine in a child process), ``worker`` (the thread that feeds it), ``ros_node`` (rclpy), ``main``; ``lifecycle_node`` and
+``lifecycle_main`` (the managed node, ``register_lifecycle_node``).
 This package imports no rclpy and no torch until a node is built, so ``--help`` is instant.
 """
 
