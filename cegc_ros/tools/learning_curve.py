@@ -90,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
             if low:
                 reg.update(preprocess=dataclasses.replace(reg.preprocess, seed=args.seed))
                 # select_weights' own scoring (its pairs carry T_target_source, a bag's T_gt)
-                row.update(low_recall=round(float(evaluate(reg.register, low)["recall"]), 4), low_pairs=len(low))
+                row.update(low_recall=round(float(evaluate(reg.register, low)["recall"]), 4),
+                           low_pairs=len(low))
             rows.append(row)
             print(f"step {step}: test {row['test_recall']} low-overlap {row.get('low_recall', '')} "
                   f"real {row['real_recall']}", flush=True)
@@ -113,7 +114,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     x = [int(r["pairs_seen"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for key, label in (("val_recall", "validation (synthetic, selects)"), ("test_recall", "synthetic test bag"),
-                       ("low_recall", "validation pairs under 30% overlap (synthetic)"),
+                       ("low_recall", "low-overlap validation pairs (synthetic, --max-overlap)"),
                        ("real_recall", "real SUN3D pairs (report)")):
         y = [float(r[key]) if r.get(key) not in ("", None) else np.nan for r in rows]
         if not np.isnan(y).all():
