@@ -281,7 +281,11 @@ def test_an_unambiguous_first_choice_is_sure_below_sure_fitness(monkeypatch):
     calls.clear()
     quick = estimate_compatibility(src, tgt, np.ones(1500), 0.05, cfg, clouds=(src, cloud_t))
     assert calls == [16] and quick.ambiguity <= 0.5
-    assert rotation_error_deg(full.R, quick.R) < 1e-3 and np.linalg.norm(full.t - quick.t) < 1e-5
+    # the same alignment: the refinement may start from another of the near-identical
+    # hypotheses that more seeds give and stop a few thousandths of a degree away (0.003 deg,
+    # 0.2 mm on the Xeon with AVX-512), against 0.014 deg from the truth at this noise
+    assert rotation_error_deg(full.R, quick.R) < 0.01 and np.linalg.norm(full.t - quick.t) < 1e-3
+    assert rotation_error_deg(R, quick.R) < 0.05 and np.linalg.norm(quick.t - t) < 5e-3
     np.testing.assert_array_equal(quick.inliers, full.inliers)
     # the fitness floor: above every fitness here, so the first choice is never sure
     calls.clear()
