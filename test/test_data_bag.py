@@ -158,6 +158,13 @@ def test_cli_writes_bag_and_rejects_bad_input(tmp_path, capsys):
     assert exc.value.code == 2 and "exists already" in capsys.readouterr().err
     assert make_bag.main([*argv, "--overwrite"]) == 0          # the README's block, run twice
     assert [p.info["index"] for p in B.read_pairs(out)] == [0, 1, 2]
+    deep = tmp_path / "fresh" / "bags" / "cli"                 # missing parents are created
+    assert make_bag.main([*argv[:-4], str(deep), "--storage", "mcap", "--no-progress"]) == 0
+    assert [p.info["index"] for p in B.read_pairs(deep)] == [0, 1, 2]
+    (tmp_path / "a_file").write_text("x")                      # a parent that is a file is not
+    with pytest.raises(SystemExit) as exc:
+        make_bag.main([*argv[:-4], str(tmp_path / "a_file" / "cli"), "--storage", "mcap", "--no-progress"])
+    assert exc.value.code == 2 and "is a file, not a directory" in capsys.readouterr().err
     keep = tmp_path / "not_a_bag"
     keep.mkdir()
     (keep / "notes.txt").write_text("mine")

@@ -82,8 +82,9 @@ def main(argv: list[str] | None = None) -> int:
         if not (args.out.is_dir() and (args.out / "metadata.yaml").is_file()):
             parser.error(f"--out {args.out} exists and is not a rosbag2 bag (no metadata.yaml): "
                          f"not replaced")
-    if not args.out.parent.exists():
-        parser.error(f"--out parent directory {args.out.parent} does not exist")
+    parent = next((d for d in args.out.parents if d.exists()), None)
+    if parent is not None and not parent.is_dir():
+        parser.error(f"--out {args.out}: {parent} is a file, not a directory")
     if args.clouds is not None:
         return _write_clouds(args)
     if args.noise and args.protocol != "modelnet":
@@ -130,10 +131,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _clear_out(out: Path) -> None:
     """Remove ``out`` before writing: an existing bag that --overwrite may replace (main
-    checked that)."""
+    checked that); create its missing parent directories (as ``ros2 bag record -o a/b/bag``
+    does), so that the docs' ``--out .cache/bags/NAME`` works in a fresh clone."""
     if out.exists():
         import shutil
         shutil.rmtree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
 
 
 def _write_clouds(args: argparse.Namespace) -> int:
