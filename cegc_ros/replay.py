@@ -4,9 +4,10 @@ of ``cegc-replay`` (cegc_ros/tools/replay.py) that ``cegc-eval --through-node``
 
 :func:`replay_bag` publishes the chosen PointCloud2 messages as stored (serialized CDR, no
 decoding) with RELIABLE QoS, paced by the bag's log times or, for a pair bag, in lockstep, and
-matches every ``~/pose`` to its pair or cloud by header stamp (:func:`plan_topics`: a pair
-bag's two topics onto the node's inputs; a sequence bag's or any recording's cloud topic onto
-``cloud``; ``--remap FROM:=TO`` chooses); :func:`write_records` and :func:`summary` report.
+matches every ``~/pose`` (a stream: ``~/odometry``) and ``~/quality`` to its pair or cloud by
+header stamp (:func:`plan_topics`: a pair bag's two topics onto the node's inputs; a sequence
+bag's or any recording's cloud topic onto ``cloud``; ``--remap FROM:=TO`` chooses);
+:func:`write_records` and :func:`summary` report.
 """
 
 from __future__ import annotations
@@ -43,9 +44,15 @@ class ReplayRecord:
     sequence bag, the ground truth relative to the first cloud played (the odometry's frame).
     latency_s: from publishing the item's last cloud to receiving its answer (None without).
     loop: which play of the bag (0 first; ``loops`` > 1).
-    fitness / ambiguity / rejected: a pair's ``~/quality`` (the engine's fitness and ambiguity;
-    the rejection reason when the node published no pose for it, e.g. ``ambiguous``); None
-    without one (a stream, or no quality message received).
+    fitness / ambiguity / rejected: the item's ``~/quality``: a pair's engine fitness and
+    ambiguity; a stream cloud's odometry fitness and its global registration's ambiguity (None
+    when tracking sufficed); the rejection reason when the node published no pose (odometry)
+    for it, e.g. ``ambiguous``, ``empty_cloud``, ``not_registered``. None without a quality
+    message (a node that publishes none) or a number in it ("nan").
+    method / keyframe: a stream cloud's ``~/quality``: how it was registered (``first``,
+    ``icp``, ``global``; ``none`` when not registered) and whether it became the keyframe;
+    None for a pair, without a quality message, or (method) when the odometry never took the
+    cloud.
     """
 
     index: int
@@ -57,6 +64,8 @@ class ReplayRecord:
     fitness: float | None = None
     ambiguity: float | None = None
     rejected: str | None = None
+    method: str | None = None
+    keyframe: bool | None = None
 
 
 @dataclass
@@ -265,7 +274,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
     rclpy.init(context=context)
     lock = threading.Lock()
     answers: dict[int, tuple[np.ndarray, float]] = {}   # stamp -> (T_est, receive time)
-    quality: dict[int, dict[str, str]] = {}             # stamp -> ~/quality key-values (pairs)
+    quality: dict[int, dict[str, str]] = {}             # stamp -> ~/quality key-values
     diag: dict[str, str] = {}
     answered = threading.Condition(lock)
     status_name = f"{node_path}: registration"      # the node's full name
@@ -311,8 +320,9 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
         node.create_subscription(PoseStamped if plan.pairs else Odometry, out_topic, on_answer,
                                  100)
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
-        if plan.pairs:
-            node.create_subscription(DiagnosticArray, f"{node_path}/quality", on_quality, 100)
+        # Both modes publish one per finished item (pairs mode: per pair; sequential: per
+        # cloud); an older node or a stand-in may publish none, then `settled` waits for none.
+        node.create_subscription(DiagnosticArray, f"{node_path}/quality", on_quality, 100)
         reset = node.create_client(Trigger, f"{node_path}/reset")
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -357,7 +367,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                     if lockstep and pending.get(stamp) is None and order:
                         _wait_answer(answered, answers, diag, order[-1],
                                      None if base is None else base + sent, pair_timeout,
-                                     pubs, len(order), n_items, item)
+                                     pubs, len(order), n_items, item, quality)
                     pubs[topic].publish(raw)
                     seen = pending.setdefault(stamp, set())
                     seen.add(topic)
@@ -369,7 +379,7 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                 if lockstep and order:
                     _wait_answer(answered, answers, diag, order[-1],
                                  None if base is None else base + sent, pair_timeout,
-                                 pubs, len(order), n_items, item)
+                                 pubs, len(order), n_items, item, quality)
                     if base is not None:    # diagnostics that count every item of this play
                         with answered:
                             answered.wait_for(lambda: int(diag.get("pairs_done", "-1"))
@@ -393,7 +403,9 @@ def replay_bag(bag_path: str | Path, rate: float = 1.0, *, lockstep: bool = Fals
                         latency_s=None if got is None else got[1] - published[stamp],
                         loop=play, fitness=_number(q.get("fitness")),
                         ambiguity=_number(q.get("ambiguity")),
-                        rejected=q.get("reason") if q.get("published") == "false" else None))
+                        rejected=q.get("reason") if q.get("published") == "false" else None,
+                        method=q.get("method") or None,
+                        keyframe=_BOOLS.get(q.get("keyframe", ""))))
 
         t_start = time.monotonic()
         play = 0
@@ -462,13 +474,17 @@ ALIVE_CHECK_S = 0.25
 
 def _wait_answer(cond: threading.Condition, poses: dict[int, Any], diag: dict[str, str],
                  stamp: int, done_target: int | None, limit: float, pubs: dict[str, Any],
-                 n_sent: int, n_total: int, item: str = "pair") -> None:
-    """Wait until the node answered item ``stamp``: its pose (odometry), or pairs_done >=
-    done_target. ReplayError when no node subscribes to the inputs any more, or after
-    ``limit`` s."""
+                 n_sent: int, n_total: int, item: str = "pair",
+                 quality: dict[int, dict[str, str]] | None = None) -> None:
+    """Wait until the node answered item ``stamp``: its pose (odometry), a ``~/quality``
+    message saying it published none (``quality``: stamp -> key-values), or pairs_done >=
+    done_target on /diagnostics (a node without ~/quality). ReplayError when no node
+    subscribes to the inputs any more, or after ``limit`` s."""
     def answered() -> bool:
-        return stamp in poses or (done_target is not None
-                                  and int(diag.get("pairs_done", "-1")) >= done_target)
+        return (stamp in poses
+                or (quality is not None and quality.get(stamp, {}).get("published") == "false")
+                or (done_target is not None
+                    and int(diag.get("pairs_done", "-1")) >= done_target))
     end = time.monotonic() + limit
     with cond:
         while not answered():
@@ -496,6 +512,10 @@ def _progress(total: int, enabled: bool, unit: str = "pair") -> Any:
     return tqdm(total=total, unit=unit, desc="replay")
 
 
+#: ~/quality's ``keyframe`` values.
+_BOOLS = {"true": True, "false": False}
+
+
 def _number(text: str | None) -> float | None:
     """A ~/quality value as a float; None when absent or not a number ("nan", "")."""
     try:
@@ -515,19 +535,22 @@ def write_records(result: ReplayResult, path: str | Path, meta: dict[str, Any]) 
             w.writerow(["index", "loop", "stamp_ns", "latency_s"] + [f"est_{i}{j}" for i in range(4)
                                                               for j in range(4)]
                        + [f"gt_{i}{j}" for i in range(4) for j in range(4)]
-                       + ["fitness", "ambiguity", "rejected"])
+                       + ["fitness", "ambiguity", "rejected", "method", "keyframe"])
             for r in result.records:
                 est = np.asarray(r.T_est).ravel().tolist() if r.T_est else [""] * 16
                 gt = np.asarray(r.T_gt).ravel().tolist() if r.T_gt else [""] * 16
+                keyframe = None if r.keyframe is None else str(r.keyframe).lower()
                 w.writerow([r.index, r.loop, r.stamp_ns, "" if r.latency_s is None else r.latency_s]
                            + est + gt + ["" if v is None else v
-                                         for v in (r.fitness, r.ambiguity, r.rejected)])
+                                         for v in (r.fitness, r.ambiguity, r.rejected, r.method,
+                                                   keyframe)])
     else:
         path.write_text(json.dumps({"meta": meta, **result.to_json()}, indent=1))
 
 
 def summary(result: ReplayResult) -> dict[str, Any]:
-    """Counts, latency percentiles and median errors (when ground truth is present)."""
+    """Counts (rejections by reason; a stream's clouds by registration method and its new
+    keyframes, from ~/quality), latency percentiles and median errors (with ground truth)."""
     recs = result.records
     with_pose = [r for r in recs if r.T_est is not None]
     out: dict[str, Any] = {"clouds" if result.stream else "pairs": len(recs),
@@ -537,6 +560,10 @@ def summary(result: ReplayResult) -> dict[str, Any]:
     rejected = Counter(r.rejected for r in recs if r.rejected)
     if rejected:                          # by the node's reason (~/quality)
         out["rejected"] = dict(sorted(rejected.items()))
+    methods = Counter(r.method for r in recs if r.method)
+    if methods:                           # a stream's: first / icp / global / none
+        out["methods"] = dict(sorted(methods.items()))
+        out["keyframes"] = sum(bool(r.keyframe) for r in recs)
     lat = [r.latency_s for r in with_pose if r.latency_s is not None]
     if lat:
         p50, p90 = np.percentile(lat, [50, 90])

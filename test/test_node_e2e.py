@@ -304,10 +304,14 @@ def test_replay_records_poses_next_to_ground_truth(ros, pairs, tmp_path):
     for r, p in zip(res.records, pairs):
         assert r.T_est is not None and r.latency_s is not None and r.latency_s > 0
         np.testing.assert_allclose(r.T_gt, p.T_target_source, atol=1e-6)
+        # The pair's ~/quality: the engine's fitness; no stream fields (method, keyframe).
+        assert r.rejected is None and r.fitness is not None and 0.0 < r.fitness <= 1.0
+        assert r.method is None and r.keyframe is None
     out = tmp_path / "replay.csv"
     assert replay_main([str(bag), "--rate", "4", "--out", str(out)]) == 0
     rows = out.read_text().splitlines()
     assert len(rows) == 4 and rows[0].startswith("index,loop,stamp_ns,latency_s,est_00")
+    assert rows[0].endswith(",fitness,ambiguity,rejected,method,keyframe")
     assert all(row.split(",")[1] == "0" for row in rows[1:])              # one play
 
 

@@ -270,12 +270,15 @@ def test_a_sequence_bag_replays_in_lockstep_twice_with_a_reset_between(seq_node,
 
 
 def test_lockstep_moves_on_after_a_cloud_the_node_rejects(seq_node, sequence, tmp_path):
-    # A cloud the node rejects (all NaN: counted, no odometry) is answered by its counters on
-    # /diagnostics: the lockstep replay goes on to the next cloud instead of waiting --wait.
+    # A cloud the node rejects (all NaN: counted, no odometry) is answered by its ~/quality
+    # (published false; its counters on /diagnostics too): the lockstep replay goes on to the
+    # next cloud instead of waiting --wait, and each record carries the cloud's ~/quality: the
+    # odometry's fitness and method of an accepted cloud, the reason of the rejected one.
+    import csv
     import dataclasses
 
     from cegc_ros.data.bag import write_sequence
-    from cegc_ros.replay import replay_bag
+    from cegc_ros.replay import replay_bag, summary, write_records
 
     _, probe = seq_node
     _reset(probe)
@@ -287,8 +290,28 @@ def test_lockstep_moves_on_after_a_cloud_the_node_rejects(seq_node, sequence, tm
     bag = tmp_path / "with_a_bad_cloud"
     write_sequence(bag, short)
     result = replay_bag(bag, lockstep=True, pair_timeout=60.0, timeout=10.0)
-    assert [r.T_est is not None for r in result.records] == [True, True, False, True]
+    recs = result.records
+    assert [r.T_est is not None for r in recs] == [True, True, False, True]
     assert int(_fresh_diag(probe)["rejected.empty_cloud"]) == rejected + 1
+    assert [r.rejected for r in recs] == [None, None, "empty_cloud", None]
+    accepted = [recs[0], recs[1], recs[3]]
+    assert all(r.fitness is not None and 0.0 < r.fitness <= 1.0 for r in accepted), recs
+    assert recs[0].method == "first" and recs[0].keyframe is True
+    assert all(r.method in ("icp", "global") for r in accepted[1:]), recs
+    # The bad cloud never reached the odometry: no method, no fitness, no keyframe.
+    assert (recs[2].method, recs[2].fitness, recs[2].keyframe) == (None, None, False)
+    for r in recs:            # the global registration's ambiguity only when it ran
+        assert (r.ambiguity is not None) <= (r.method == "global"), r
+    info = summary(result)
+    assert info["rejected"] == {"empty_cloud": 1}
+    assert sum(info["methods"].values()) == 3 and info["methods"]["first"] == 1
+    assert info["keyframes"] == sum(bool(r.keyframe) for r in recs) >= 1
+    out = tmp_path / "records.csv"
+    write_records(result, out, {})
+    rows = list(csv.DictReader(out.open()))
+    assert [(row["rejected"], row["method"]) for row in rows] == \
+        [("", "first"), ("", recs[1].method), ("empty_cloud", ""), ("", recs[3].method)]
+    assert rows[0]["keyframe"] == "true" and float(rows[1]["fitness"]) == recs[1].fitness
 
 
 class _RecordingNode(RegistrationNodeMixin):

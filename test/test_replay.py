@@ -138,6 +138,7 @@ def test_a_pair_the_node_rejected_is_recorded_with_its_reason_and_not_waited_for
         node.close()
     assert [(r.T_est, r.rejected, r.fitness, r.ambiguity) for r in result.records] == \
         [(None, "ambiguous", 0.25, 0.9)] * 3
+    assert all(r.method is None and r.keyframe is None for r in result.records)   # a pair's
     assert took < 30.0        # answered: no 60 s wait for poses
     from cegc_ros.replay import summary
     assert summary(result)["rejected"] == {"ambiguous": 3} and summary(result)["poses"] == 0
@@ -277,6 +278,71 @@ def test_lockstep_on_a_stream_waits_per_cloud_and_ends_after_wait(tmp_path, caps
     assert code == 1 and out == ""
     assert err == ["cegc-replay: register_node did not answer cloud 1 of 4 within --wait 1 s "
                    "(0 poses so far)"]
+
+
+class OldStreamNode(CloudRecorder):
+    """A sequential-mode node without ~/quality (as before it had one): answers every cloud on
+    ~/odometry (identity) except those at ``reject`` stamps, and counts each cloud in
+    ``pairs_done`` on /diagnostics, published after each cloud and every 0.2 s."""
+
+    def __init__(self, namespace: str, reject: set[int]) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        super().__init__(namespace, f"{namespace}/unused")
+        self.name = f"{namespace}/register_node: registration"
+        self.reject, self.done = reject, 0
+        self.odometry = self.node.create_publisher(Odometry, f"{namespace}/register_node/odometry",
+                                                   10)
+        self.diag = self.node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(PointCloud2, f"{namespace}/cloud", self._on, qos)
+        self.node.create_timer(0.2, self._publish_diag)
+
+    def _on(self, msg) -> None:
+        from nav_msgs.msg import Odometry
+
+        stamp = rh.stamp_of(msg)
+        self.stamps.append(stamp)
+        if stamp not in self.reject:
+            odom = Odometry(header=msg.header, child_frame_id=msg.header.frame_id)
+            odom.pose.pose.orientation.w = 1.0
+            self.odometry.publish(odom)
+        self.done += 1
+        self._publish_diag()
+
+    def _publish_diag(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        status = DiagnosticStatus(name=self.name,
+                                  values=[KeyValue(key="pairs_done", value=str(self.done))])
+        self.diag.publish(DiagnosticArray(status=[status]))
+
+
+def test_a_stream_node_without_quality_still_replays_in_lockstep(tmp_path):
+    # No ~/quality at all: a cloud without odometry is answered by pairs_done on /diagnostics,
+    # and the records carry no quality values (None), as before the replay listened for them.
+    from cegc_ros.replay import replay_bag, summary
+
+    bag = _recording(tmp_path / "rec_old", n=4)
+    node = OldStreamNode("/oldstream", reject={52 * 10**8})
+    try:
+        t0 = time.monotonic()
+        result = replay_bag(bag, lockstep=True, pair_timeout=60.0, timeout=60.0,
+                            node_namespace="/oldstream")
+        took = time.monotonic() - t0
+    finally:
+        node.close()
+    assert node.stamps == [(50 + k) * 10**8 for k in range(4)]
+    assert [r.T_est is not None for r in result.records] == [True, True, False, True]
+    assert all((r.fitness, r.ambiguity, r.rejected, r.method, r.keyframe) == (None,) * 5
+               for r in result.records)
+    assert took < 30.0                      # moved on after the rejected cloud, no 60 s waits
+    info = summary(result)
+    assert (info["clouds"], info["poses"]) == (4, 3)
+    assert "rejected" not in info and "methods" not in info and "keyframes" not in info
 
 
 def test_a_repeated_play_needs_the_nodes_reset_service(tmp_path, capsys):

@@ -22,9 +22,12 @@ ground truth from ``/cegc/ground_truth``. A cloud stream is answered on ``~/odom
 (sequential mode): each odometry pose is matched to its cloud, next to a sequence bag's
 ground truth relative to the first cloud played. ``--lockstep`` publishes the next pair (or
 cloud) only when the node has answered the previous one (a pose, or a rejection seen on
-/diagnostics), which is what an accuracy evaluation wants: nothing is dropped because the node
-was busy. A node that dies (its input subscriptions end) or leaves an item unanswered for
-``--wait`` seconds (default 30) ends the replay with one line and exit status 1.
+``~/quality`` or /diagnostics), which is what an accuracy evaluation wants: nothing is dropped
+because the node was busy. Each record also carries the item's ``~/quality`` (both modes):
+fitness, ambiguity, the rejection reason, and for a stream how the cloud was registered
+(``method``) and whether it became the ``keyframe``. A node that dies (its input
+subscriptions end) or leaves an item unanswered for ``--wait`` seconds (default 30) ends the
+replay with one line and exit status 1.
 ``--loops N`` plays the bag N times and ``--loop`` until Ctrl-C (then the completed plays are
 reported and written, exit 0), as ``ros2 bag play --loop``;
 before each repeat the node's ``~/reset`` is called, so a sequential-mode node starts a new
