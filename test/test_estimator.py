@@ -240,8 +240,10 @@ def test_sure_seeds_decide_a_clean_pair_from_the_strongest_seeds_alone(monkeypat
                                    clouds=(cloud, target))
     assert calls == [16]
     assert rotation_error_deg(R, quick.R) < 0.1 and np.linalg.norm(quick.t - t) < 0.01
-    # the same pose (up to the rounding of a different order of equal hypotheses) and inliers
-    assert rotation_error_deg(full.R, quick.R) < 1e-3 and np.linalg.norm(full.t - quick.t) < 1e-5
+    # the same alignment and inliers: the refinement may start from another of the
+    # near-identical hypotheses and stop a few thousandths of a degree away on another CPU's
+    # rounding (as the half-seen cloud's below did on the Xeon with AVX-512)
+    assert rotation_error_deg(full.R, quick.R) < 0.01 and np.linalg.norm(full.t - quick.t) < 1e-3
     np.testing.assert_array_equal(quick.inliers, full.inliers)
 
 
