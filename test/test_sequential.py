@@ -226,6 +226,28 @@ def test_first_cloud_is_the_odometry_frame():
     assert odo.keyframe.stamp_ns == 5 * S and odo.stats.keyframes == 1
 
 
+def test_warm_start_loads_what_the_first_cloud_needs_and_keeps_the_state():
+    """warm_start (the node calls it at start-up) imports Open3D and SciPy's k-d tree in a
+    fresh process, so that the first cloud does not pay for them, and changes nothing else:
+    no frame, no distances, no stats, and the clouds after it register as without it."""
+    import subprocess
+    import sys
+    code = ("import sys; from cegc_ros.sequential import KeyframeOdometry; o = KeyframeOdometry(); "
+            "print(any(m in sys.modules for m in ('open3d', 'scipy.spatial'))); o.warm_start(); "
+            "print(all(m in sys.modules for m in ('open3d', 'scipy.spatial')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]
+    w = World()
+    warm, cold = KeyframeOdometry(), KeyframeOdometry()
+    assert warm.warm_start() > 0.0
+    assert warm.pose is None and warm.keyframe is None and warm.distances is None
+    assert warm.stats == cold.stats and warm.path == []
+    for k, T in enumerate(straight_run(3)):
+        a, b = warm.feed(k * S // 10, w.cloud(T)), cold.feed(k * S // 10, w.cloud(T))
+        assert a.accepted and a.method == b.method
+        np.testing.assert_array_equal(a.T_odom_cloud, b.T_odom_cloud)
+
+
 def test_tracks_a_known_motion_exactly():
     w = World()
     poses = straight_run(8)

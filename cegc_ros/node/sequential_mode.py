@@ -69,6 +69,7 @@ class SequentialMode:
 
     def __init__(self, config: SequentialConfig) -> None:
         self.odometry = KeyframeOdometry(config)        # global registration: set by the worker
+        self.odometry.warm_start()      # imports at start-up, not on the first cloud
         self._frame_times: deque[float] = deque(maxlen=200)
         self._poses: deque[Any] = deque(maxlen=config.path_length)   # PoseStamped of ~/path
         self.tf_class: Any = None
