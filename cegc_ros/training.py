@@ -282,16 +282,24 @@ def _worker_ignores_stop(_worker_id: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def bf16_hardware(device: str, cpuinfo: str = "/proc/cpuinfo") -> bool:
+def bf16_hardware(device: str, cpuinfo: str = "/proc/cpuinfo", capability: str | None = None) -> bool:
     """Whether bf16 autocast pays on ``device``: CUDA, or a CPU with AVX-512-BF16 or AMX-BF16
-    (on an AVX2-only CPU torch emulates bf16 and runs slower than fp32)."""
+    (on an AVX2-only CPU torch emulates bf16 and runs slower than fp32) whose torch runs its
+    AVX-512 kernels (``capability``: torch.backends.cpu.get_cpu_capability() by default). With
+    ``ATEN_CPU_CAPABILITY=avx2`` on such a CPU, oneDNN's bf16 packing fails ("pack_vnni2 is only
+    supported when avx512 is supported"), so training stays fp32 there."""
     if device.startswith("cuda"):
         return True
     try:
         flags = Path(cpuinfo).read_text().split()
     except OSError:
         return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+    if not ("avx512_bf16" in flags or "amx_bf16" in flags):
+        return False
+    if capability is None:
+        import torch
+        capability = torch.backends.cpu.get_cpu_capability()
+    return capability.upper().startswith("AVX512")
 
 
 def _stage(cfg: TrainConfig, step: int) -> Stage:

@@ -355,8 +355,10 @@ def test_bf16_autocast_only_where_the_hardware_has_it(tmp_path):
     amd.write_text("flags\t\t: fpu sse avx2 fma\nflags\t\t: fpu sse avx2 fma\n")
     xeon = tmp_path / "xeon"
     xeon.write_text("flags\t\t: fpu avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n")
-    assert not bf16_hardware("cpu", str(amd))
-    assert bf16_hardware("cpu", str(xeon))
+    assert not bf16_hardware("cpu", str(amd), "AVX2")
+    assert bf16_hardware("cpu", str(xeon), "AVX512")
+    # the same CPU with torch held to its AVX2 kernels (ATEN_CPU_CAPABILITY=avx2): fp32
+    assert not bf16_hardware("cpu", str(xeon), "AVX2")
     assert bf16_hardware("cuda:0", str(amd))
     assert not bf16_hardware("cpu", str(tmp_path / "missing"))
 
