@@ -43,6 +43,7 @@ from .allocator import apply_thread_environment
 _THREAD_ENV_TOO_LATE = apply_thread_environment()
 
 from . import bounding, estimator, matching, refine  # noqa: E402
+from .matching import NetworkOutputError  # noqa: E402,F401  (re-exported: the engine's error)
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
 from .geometry import LEGACY_FEATURES, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
@@ -59,6 +60,8 @@ def default_weights() -> Path:
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or does not match this code."""
+
+
 
 
 @dataclass
@@ -295,7 +298,8 @@ class Registrar:
         return self._compiled, "torch.compile"
 
     def register(self, source_xyz: np.ndarray, target_xyz: np.ndarray) -> RegistrationResult:
-        """Register source onto target (both (N, 3), metres). ValueError on unusable input."""
+        """Register source onto target (both (N, 3), metres). ValueError on unusable input;
+        NetworkOutputError when the network returns non-finite values."""
         with self._lock:
             return self._register(source_xyz, target_xyz, self.preprocess, self.engine)
 
@@ -344,7 +348,11 @@ class Registrar:
             spacing = refine.median_spacing(tgt_m)
         with clock("match"):
             network, runtime = self._network(len(ps.points), len(pt.points), eng)
-            m = matching.match(network, ps, pt, eng, self.device)
+            try:
+                m = matching.match(network, ps, pt, eng, self.device)
+            except NetworkOutputError as err:
+                raise NetworkOutputError(f"the network ({runtime}) {err}; the pair is not "
+                                         f"registered (checkpoint {self.checkpoint_path})") from None
         return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings, pre.seed)
 
     def _finish(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:

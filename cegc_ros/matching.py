@@ -67,8 +67,23 @@ def select(cand: np.ndarray, weights: np.ndarray, max_correspondences: int
             w[keep].astype(np.float32), ranks[keep].astype(np.int64))
 
 
+class NetworkOutputError(RuntimeError):
+    """The network returned non-finite confidences or overlap scores (a broken checkpoint or
+    runtime, e.g. a compiled graph built for other CPU kernels): the pair is not registered
+    rather than registered from garbage (cegc_ros.engine re-raises it naming the runtime)."""
+
+
+def finite_outputs(**arrays: np.ndarray) -> None:
+    """NetworkOutputError naming how many values of each array are not finite; silent when all are."""
+    bad = [f"{int((~np.isfinite(a)).sum())} of {a.size} {name.replace('_', ' ')}"
+           for name, a in arrays.items() if not np.isfinite(a).all()]
+    if bad:
+        raise NetworkOutputError(f"returned non-finite values: {', '.join(bad)}")
+
+
 def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, device: str) -> Matches:
-    """Run CEGC on the prepared clouds and return the weighted correspondences."""
+    """Run CEGC on the prepared clouds and return the weighted correspondences;
+    NetworkOutputError when its confidences or overlap scores are not all finite."""
     import torch
 
     def tens(a: np.ndarray) -> torch.Tensor:
@@ -99,6 +114,7 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
             w = (torch.sigmoid(out.scores[0]) * torch.sigmoid(out.src_overlap_logits[0])[:, None]
                  ).float().cpu().numpy()
             src_rows = np.arange(len(cand))
+    finite_outputs(candidate_confidences=w, source_overlap_scores=s_ov, target_overlap_scores=t_ov)
     if eng.confidence == "uniform":
         w = np.ones_like(w)
     corr, weights, rank = select(cand, w, eng.max_correspondences)

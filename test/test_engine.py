@@ -277,6 +277,32 @@ def test_checkpoint_carries_its_feature_radii_and_old_ones_get_the_legacy_radii(
 
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
                     reason="torch.compile's CPU backend needs a C++ compiler")
+def test_non_finite_network_output_is_an_error_naming_the_runtime(tiny_checkpoint, monkeypatch):
+    """A network that returns NaN confidences (a broken checkpoint or runtime: a compiled graph
+    built for other CPU kernels did, under ATEN_CPU_CAPABILITY=avx2 on an AVX-512 CPU) stops
+    the pair with an error that says so, instead of an invalid result blaming the input; the
+    same registrar registers again once the network is sound."""
+    from cegc_ros.engine import NetworkOutputError
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", warm=False)
+    real = reg.model.score_candidates
+
+    def broken(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out.scores[..., :3] = float("nan")              # 3 candidates of every source point
+        return out
+    monkeypatch.setattr(reg.model, "score_candidates", broken)
+    src = scene(1000, seed=4)
+    tgt = src @ euler_z(15).T + [0.1, 0.2, 0.0]
+    with pytest.raises(NetworkOutputError, match=r"network \(torch\) returned non-finite values: (\d+) of \d+ candidate confidences") as err:
+        reg.register(src, tgt)
+    # every source point's first 3 of its learned + FPFH candidates, counted before selection
+    n_bad, n_all = map(int, err.value.args[0].split("values: ")[1].split(" candidate")[0].split(" of "))
+    assert n_bad * (reg.engine.learned_candidates + reg.engine.fpfh_candidates) == 3 * n_all
+    monkeypatch.setattr(reg.model, "score_candidates", real)
+    res = reg.register(src, tgt)
+    assert np.isfinite(res.weights).all() and len(res.correspondences) > 0
+
+
 def test_compiled_networks_give_the_eager_answer_and_other_sizes_run_eagerly(tiny_checkpoint):
     pre = PreprocessConfig(num_points=128)
     eager = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre,
