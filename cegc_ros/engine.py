@@ -62,8 +62,6 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or does not match this code."""
 
 
-
-
 @dataclass
 class RegistrationResult:
     """Result of one registration. Points are in metres, each in its own frame."""
