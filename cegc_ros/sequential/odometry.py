@@ -240,7 +240,7 @@ class KeyframeOdometry:
         """Prepare and track a tiny synthetic cloud (three faces of a box corner, 900 points)
         without touching the odometry's state: Open3D and SciPy get imported and set up, so
         that the first real cloud does not pay for it (the real LiDAR pair's first cloud: 0.59 s
-        cold, of which importing Open3D 0.57 s, against 0.03-0.06 s for the clouds after it;
+        cold, most of it those imports, against 0.03-0.06 s for the clouds after it;
         docs/sequential.md). The node calls it at start-up. Returns the seconds spent."""
         t0 = time.perf_counter()
         rng = np.random.default_rng(0)
