@@ -45,7 +45,7 @@ _THREAD_ENV_TOO_LATE = apply_thread_environment()
 from . import bounding, estimator, matching, refine  # noqa: E402
 from .matching import NetworkOutputError  # noqa: E402,F401  (re-exported: the engine's error)
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
-from .geometry import LEGACY_FEATURES, point_budget, prepare_pair  # noqa: E402
+from .geometry import LEGACY_FEATURES, box_corner, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
@@ -246,11 +246,7 @@ class Registrar:
         A fresh Registrar's first real pair then costs about a warm one instead of ~3x
         (docs/performance.md). Returns the seconds spent."""
         t0 = time.perf_counter()
-        rng = np.random.default_rng(0)
-        k = 400
-        corner = np.concatenate([np.c_[rng.uniform(0, 1, (k, 2)), np.zeros(k)],
-                                 np.c_[np.zeros(k), rng.uniform(0, 1, (k, 2))],
-                                 np.c_[rng.uniform(0, 1, k), np.zeros(k), rng.uniform(0, 1, k)]])
+        corner = box_corner(400)
         pre = dataclasses.replace(self.preprocess, num_points=64, support_points=128, voxel_size=0.0)
         eng = dataclasses.replace(self.engine, compile=False)
         with self._lock:

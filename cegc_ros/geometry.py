@@ -99,6 +99,17 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return np.asarray(pcd.voxel_down_sample(voxel).points, np.float32)
 
 
+def box_corner(points_per_face: int, seed: int = 0) -> np.ndarray:
+    """(3 * points_per_face, 3) float64: three faces of the unit cube that meet at the origin,
+    uniformly drawn (seeded). The warm-up cloud of ``Registrar.warm_start`` and
+    ``KeyframeOdometry.warm_start``: small, with normals in three directions."""
+    rng = np.random.default_rng(seed)
+    k = points_per_face
+    return np.concatenate([np.c_[rng.uniform(0, 1, (k, 2)), np.zeros(k)],
+                           np.c_[np.zeros(k), rng.uniform(0, 1, (k, 2))],
+                           np.c_[rng.uniform(0, 1, k), np.zeros(k), rng.uniform(0, 1, k)]])
+
+
 def column_min(points: np.ndarray) -> np.ndarray:
     """(N, D) -> (D,) per-column minimum; ``points.min(0)`` reduces a narrow C-order array
     element by element (300k x 3: 8 ms), one column at a time is 0.1 ms."""

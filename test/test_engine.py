@@ -467,3 +467,15 @@ def test_a_pose_that_explains_almost_none_of_the_source_is_invalid_with_its_reas
     # A true pair stays valid, far above the floor.
     good = reg.register(tgt, tgt @ euler_z(20).T)
     assert good.valid and good.fitness > 0.5
+
+
+def test_box_corner_is_three_seeded_faces_of_the_unit_cube():
+    """The warm-up cloud of Registrar.warm_start and KeyframeOdometry.warm_start: k points on
+    each of the faces z = 0, x = 0, y = 0, inside the unit cube, the same for the same seed."""
+    from cegc_ros.geometry import box_corner
+    c = box_corner(50)
+    assert c.shape == (150, 3)
+    assert (c[:50, 2] == 0).all() and (c[50:100, 0] == 0).all() and (c[100:, 1] == 0).all()
+    assert c.min() >= 0.0 and c.max() <= 1.0 and (c > 0).sum(1).min() == 2
+    np.testing.assert_array_equal(c, box_corner(50))
+    assert not np.array_equal(c, box_corner(50, seed=1))

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..bounding import robust_extent
 from ..config import SequentialConfig
-from ..geometry import finite_cloud
+from ..geometry import box_corner, finite_cloud
 from . import icp as icp_stage
 from .se3 import compose_covariance, rotation_angle_deg, scale_motion
 
@@ -243,11 +243,7 @@ class KeyframeOdometry:
         cold, most of it those imports, against 0.03-0.06 s for the clouds after it;
         docs/sequential.md). The node calls it at start-up. Returns the seconds spent."""
         t0 = time.perf_counter()
-        rng = np.random.default_rng(0)
-        k = 300
-        u, v = rng.uniform(0.0, 1.0, (2, k))
-        corner = np.concatenate([np.c_[u, v, np.zeros(k)], np.c_[np.zeros(k), u, v],
-                                 np.c_[u, np.zeros(k), v]])
+        corner = box_corner(300)
         robust_extent(corner)
         prepared = icp_stage.prepare_cloud(corner, 0.05)
         icp_stage.icp(prepared, prepared, np.eye(4), 0.2, 0.1, max_iterations=2)
