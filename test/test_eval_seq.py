@@ -83,7 +83,11 @@ def seq_bag(tmp_path_factory):
     return path
 
 
-def test_cli_scores_a_sequence_bag(seq_bag, tmp_path, capsys):
+def test_cli_scores_a_sequence_bag(seq_bag, tmp_path, capsys, monkeypatch):
+    from cegc_ros.sequential import KeyframeOdometry
+    warmed = []
+    warm_start = KeyframeOdometry.warm_start
+    monkeypatch.setattr(KeyframeOdometry, "warm_start", lambda self: warmed.append(1) or warm_start(self))
     out = tmp_path / "eval"
     rc = E.main([str(seq_bag), "--methods", "icp-only,kiss-icp", "--out", str(out), "--quiet",
                  "--set", "sequential.max_range=4.0", "--rpe-lengths", "0.25"])
@@ -97,6 +101,7 @@ def test_cli_scores_a_sequence_bag(seq_bag, tmp_path, capsys):
     assert icp["rejected"] == 0 and icp["recoveries"] == 0 and icp["keyframes"] >= 1
     assert icp["rpe"]["0.25"]["segments"] > 0
     assert icp["latency_ms"]["median"] > 0
+    assert warmed == [1]        # timed as the node runs it: warmed up, and the state untouched
     if E.kiss_icp_available():
         assert kiss["skipped"] == "" and kiss["ate"]["coverage"] == 1.0
         assert np.isfinite(kiss["ate"]["rmse_first"])

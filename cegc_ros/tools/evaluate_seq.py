@@ -199,10 +199,12 @@ def load_sequence(args: argparse.Namespace) -> Any:
 
 def run_odometry(name: str, seq: Any, config: Any, registration: Any = None,
                  progress: bool = False) -> MethodRun:
-    """KeyframeOdometry over the sequence; unusable clouds count as rejected (no pose)."""
+    """KeyframeOdometry over the sequence, warmed up first as the node does at start-up (so the
+    first cloud's latency is not the imports'); unusable clouds count as rejected (no pose)."""
     from cegc_ros.sequential import KeyframeOdometry
 
     odo = KeyframeOdometry(config, registration)
+    odo.warm_start()
     K = len(seq)
     poses = np.full((K, 4, 4), np.nan)
     latency = np.full(K, np.nan)
