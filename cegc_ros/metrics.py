@@ -107,6 +107,16 @@ def translation_error(t_gt: np.ndarray, t_est: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(t_gt, np.float64) - np.asarray(t_est, np.float64), axis=-1)
 
 
+def within(T_gt: np.ndarray, T_est: np.ndarray,
+           thresholds: RecallThresholds = REAL_FRAGMENT_RECALL) -> bool:
+    """One estimate (4, 4) against its ground truth (4, 4): are its isotropic errors below
+    ``thresholds`` (default 15 deg / 0.3 m)? Validity is the caller's to add."""
+    T_gt, T_est = np.asarray(T_gt, np.float64), np.asarray(T_est, np.float64)
+    if rotation_error_deg(T_gt[:3, :3], T_est[:3, :3]) >= thresholds.rot_deg:
+        return False
+    return thresholds.trans is None or bool(translation_error(T_gt[:3, 3], T_est[:3, 3]) < thresholds.trans)
+
+
 @dataclass
 class PairErrors:
     """Errors of K estimates against their ground truths (arrays over pairs)."""

@@ -95,6 +95,17 @@ def test_real_fragment_recall_needs_translation_too():
     assert M.summarize(T_gt, T_est, thresholds=M.SEVEN_SCENES_RECALL)["recall"] == 0.0
 
 
+def test_within_one_estimate_agrees_with_the_recall_of_summarize():
+    T_gt = transform(rot("z", 30), (1.0, 2.0, 0.5))
+    for angle, shift, real, seven in [(10, 0.2, True, False), (10, 0.4, False, False),
+                                      (16, 0.0, False, False), (4, 0.4, False, True)]:
+        T_est = T_gt @ transform(rot("x", angle), (0, 0, 0))
+        T_est[:3, 3] += (shift, 0, 0)
+        assert M.within(T_gt, T_est) is real
+        assert M.within(T_gt, T_est, M.SEVEN_SCENES_RECALL) is seven
+        assert M.summarize(T_gt[None], T_est[None], thresholds=M.REAL_FRAGMENT_RECALL)["recall"] == float(real)
+
+
 def test_bad_shapes_raise():
     with pytest.raises(ValueError):
         M.pair_errors(np.eye(3), np.eye(3))

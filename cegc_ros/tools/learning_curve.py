@@ -32,13 +32,11 @@ FIELDS = ["step", "pairs_seen", "val_recall", "test_recall", "test_pairs", "low_
 
 def recall(registrar, pairs) -> float:
     """Share of pairs registered within 15 deg / 0.3 m (valid results only)."""
-    from cegc_ros.metrics import rotation_error_deg
+    from cegc_ros.metrics import within
     ok = 0
     for p in pairs:
         res = registrar.register(p.source, p.target)
-        T = res.T_target_source
-        ok += bool(res.valid and rotation_error_deg(p.T_gt[:3, :3], T[:3, :3]) < 15.0
-                   and np.linalg.norm(p.T_gt[:3, 3] - T[:3, 3]) < 0.3)
+        ok += bool(res.valid and within(p.T_gt, res.T_target_source))
     return ok / max(1, len(pairs))
 
 

@@ -41,7 +41,7 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
     valid, rotation and translation errors, fitness, each stage's seconds, and the rank of the
     first right pose among those the estimator's verification ranked, -1 for none) for ``--dump``;
     with ``evidence`` (an EngineConfig) also :func:`pose_evidence`'s columns."""
-    from cegc_ros.metrics import rotation_error_deg
+    from cegc_ros.metrics import rotation_error_deg, within
     ok, low, secs, missed = [], [], [], []
     for p in pairs:
         res = register(p.source, p.target)
@@ -50,18 +50,15 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
         def errors(M: np.ndarray) -> tuple[float, float]:
             return float(rotation_error_deg(T[:3, :3], M[:3, :3])), float(np.linalg.norm(T[:3, 3] - M[:3, 3]))
 
-        def right(M: np.ndarray) -> bool:
-            rot, trans = errors(M)
-            return rot < 15.0 and trans < 0.3
         rot_deg, trans_m = errors(E)
-        correct = right(E)
+        correct = within(T, E)
         ok.append(res.valid and correct)
         low.append(p.info["overlap"] < 0.3)
         secs.append(res.timings["total"])
         # which of the poses the estimator's verification ranked were right: a wrong result with
         # one there is the verification's miss, without one the candidates'
         hyp = getattr(res, "hypotheses", np.zeros((0, 4, 4)))
-        right_ones = [i for i, H in enumerate(hyp) if right(H)]
+        right_ones = [i for i, H in enumerate(hyp) if within(T, H)]
         if len(hyp):
             missed.append(bool(right_ones) and not (res.valid and correct))
         if rows is not None:
