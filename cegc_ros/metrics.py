@@ -114,7 +114,9 @@ def within(T_gt: np.ndarray, T_est: np.ndarray,
     T_gt, T_est = np.asarray(T_gt, np.float64), np.asarray(T_est, np.float64)
     if rotation_error_deg(T_gt[:3, :3], T_est[:3, :3]) >= thresholds.rot_deg:
         return False
-    return thresholds.trans is None or bool(translation_error(T_gt[:3, 3], T_est[:3, 3]) < thresholds.trans)
+    if thresholds.trans is None:
+        return True
+    return bool(translation_error(T_gt[:3, 3], T_est[:3, 3]) < thresholds.trans)
 
 
 @dataclass
