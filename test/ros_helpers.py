@@ -139,3 +139,17 @@ def wait_for(predicate: Callable[[], bool], timeout: float, poll: float = 0.02) 
             return True
         time.sleep(poll)
     return bool(predicate())
+
+
+def call_idempotent(client: Any, request: Any, timeout: float, attempt: float = 15.0) -> Any:
+    """The service's answer to ``request``, sent again every ``attempt`` s until one comes or
+    ``timeout`` s pass (None). Only for requests that may be repeated (a query): a request sent
+    just after discovery can go unanswered for good when the server has not yet matched the
+    client's response reader (seen once in CI on a busy machine: get_state silent for 120 s)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        future = client.call_async(request)
+        if wait_for(future.done, min(attempt, max(0.0, end - time.monotonic()))):
+            return future.result()
+        client.remove_pending_request(future)
+    return None

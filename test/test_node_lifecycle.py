@@ -93,7 +93,10 @@ class Manager:
     def state(self) -> str:
         from lifecycle_msgs.srv import GetState
 
-        return self._call(self.get, GetState.Request()).current_state.label
+        assert self.get.wait_for_service(timeout_sec=TIMEOUT), f"no service {self.get.srv_name}"
+        answer = rh.call_idempotent(self.get, GetState.Request(), TIMEOUT)
+        assert answer is not None, f"{self.get.srv_name}: no answer"
+        return answer.current_state.label
 
     def transition(self, transition_id: int) -> bool:
         from lifecycle_msgs.srv import ChangeState
