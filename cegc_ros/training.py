@@ -53,6 +53,7 @@ from .model.losses import (
     cegc_loss,
     distill_loss,
 )
+from .model.hoce import widened_refinement
 from .model.narrowing import NarrowingError, narrowed_state
 
 OBJECTIVES = ("candidates", "paper")
@@ -412,7 +413,7 @@ class Trainer:
         """Continue from a trainer state (last.pt) or, warm-starting with a fresh optimizer,
         from an engine checkpoint (best.pt / shipped weights)."""
         state = torch.load(path, map_location=self.device, weights_only=True)
-        dropped = self._load_weights(state)
+        changes = self._load_weights(state)
         if "optimizer" in state:
             self.opt.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
@@ -430,29 +431,41 @@ class Trainer:
                                if prior else int(meta.get("pairs_seen", meta.get("step", 0))),
                                "elapsed_minutes": float(meta.get("elapsed_minutes", 0.0))
                                + float(prior.get("elapsed_minutes", 0.0))}
-            if dropped:
-                self.warm_start["dropped_attention_layers"] = dropped
+            self.warm_start.update(changes)
 
-    def _load_weights(self, state: dict[str, Any]) -> int:
-        """Load the checkpoint's weights into the model; returns how many attention layers were
-        dropped. A warm start from an engine checkpoint whose network has more (self, cross)
-        attention layers than ``model.attn_layers`` keeps its first ones (the blocks are
-        residual, so the shortened network starts close to the full one: the shipped weights cut
-        from 2 layers to 1 register 0.536 of the 196 validation pairs before any training,
-        against 0.566) and fine-tunes from there (issue: fast everywhere, fewer attention
-        layers). Any other difference fails as torch's strict load does."""
+    def _load_weights(self, state: dict[str, Any]) -> dict[str, int]:
+        """Load the checkpoint's weights into the model; returns what a warm start changed
+        (``dropped_attention_layers``, ``hoce_topk_widened_from``; empty for none).
+
+        A warm start from an engine checkpoint whose network has more (self, cross) attention
+        layers than ``model.attn_layers`` keeps its first ones (the blocks are residual, so the
+        shortened network starts close to the full one: the shipped weights cut from 2 layers
+        to 1 register 0.536 of the 196 validation pairs before any training, against 0.566) and
+        fine-tunes from there (issue: fast everywhere, fewer attention layers). One whose HOCE
+        reads fewer sorted similarities than ``model.hoce_topk`` is widened with the same outputs
+        (:func:`cegc_ros.model.hoce.widened_refinement`; issue 25, the overlap estimate). Any
+        other difference fails as torch's strict load does."""
         theirs = dict(state.get("model_config") or {})
         ours = self.cfg.model.to_dict()
+        weights = state["state_dict"]
+        if "optimizer" in state:
+            self.model.load_state_dict(weights)
+            return {}
+        changes: dict[str, int] = {}
+        old_topk = int(theirs.get("hoce_topk", ours["hoce_topk"]))
+        if old_topk < ours["hoce_topk"]:
+            weights = widened_refinement(weights, old_topk, ours["hoce_topk"])
+            theirs["hoce_topk"] = ours["hoce_topk"]
+            changes["hoce_topk_widened_from"] = old_topk
         extra = int(theirs.get("attn_layers", ours["attn_layers"])) - ours["attn_layers"]
         same_otherwise = {k: v for k, v in theirs.items() if k != "attn_layers"} == \
             {k: v for k, v in ours.items() if k != "attn_layers" and k in theirs}
-        if extra <= 0 or "optimizer" in state or not same_otherwise:
-            self.model.load_state_dict(state["state_dict"])
-            return 0
+        if extra <= 0 or not same_otherwise:
+            self.model.load_state_dict(weights)
+            return changes
         own = self.model.state_dict()
-        kept = {k: v for k, v in state["state_dict"].items() if k in own}
-        self.model.load_state_dict(kept, strict=True)
-        return extra
+        self.model.load_state_dict({k: v for k, v in weights.items() if k in own}, strict=True)
+        return {**changes, "dropped_attention_layers": extra}
 
     def _teacher(self, fresh: bool) -> CEGC:
         """The frozen teacher of ``distill.teacher``; at a fresh start with

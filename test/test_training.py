@@ -330,6 +330,40 @@ def test_a_warm_start_from_a_warm_started_checkpoint_counts_every_pair_seen(tmp_
     assert meta["pairs_seen"] == 6996 and meta["warm_start"]["pairs_seen"] == 6994
 
 
+def test_a_warm_start_into_a_wider_hoce_keeps_its_overlap_logits(tmp_path):
+    """A checkpoint whose HOCE reads 4 sorted similarities, warm-started into hoce_topk 8: every
+    weight but the refinement's first map is kept, and HOCE's logits are the same (the added
+    similarities start at weight 0); the run then trains them and records the widening."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC, ModelConfig
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "wide", max_steps=2)
+    cfg.model = ModelConfig.from_dict({**cfg.model.to_dict(), "hoce_topk": 8})
+    narrow = CEGC(ModelConfig.from_dict({**cfg.model.to_dict(), "hoce_topk": 4})).eval()
+    save_checkpoint(tmp_path / "narrow.pt", narrow, {"step": 10, "pairs_seen": 10})
+    trainer = Trainer(cfg, resume=tmp_path / "narrow.pt", device="cpu", fragments=frags,
+                      val_fragments=frags, progress=False)
+    assert trainer.warm_start["hoce_topk_widened_from"] == 4
+    got, want = trainer.model.state_dict(), narrow.state_dict()
+    key = "hoce.refine.0.0.weight"
+    assert got[key].shape == (32, 9) and want[key].shape == (32, 5)
+    assert all(torch.equal(got[k], want[k]) for k in want if k != key)
+    fx, fy = torch.randn(1, 40, 32), torch.randn(1, 50, 32)
+    model = trainer.model.eval()
+    with torch.no_grad():
+        for a, b in zip(model.hoce(fx, fy), narrow.hoce(fx, fy), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    trainer.run()
+    assert trainer.model.state_dict()[key][:, 4:8].abs().sum() > 0           # now in use
+    _, meta = load_checkpoint(tmp_path / "wide" / "snapshots" / "step_0000002.pt")
+    assert meta["warm_start"]["hoce_topk_widened_from"] == 4
+    # Narrower is not a widening: it fails as a strict load does.
+    save_checkpoint(tmp_path / "eight.pt", trainer.model, {"step": 2})
+    with pytest.raises(RuntimeError):
+        Trainer(tiny_config(tmp_path / "four", max_steps=1), resume=tmp_path / "eight.pt",
+                device="cpu", fragments=frags, val_fragments=frags, progress=False)
+
+
 def test_a_warm_start_continues_the_curriculum_where_the_weights_left_it(tmp_path):
     from cegc_ros.engine import save_checkpoint
     from cegc_ros.model import CEGC

@@ -48,3 +48,20 @@ def top_n_indices(logits: Tensor, ratio: float) -> Tensor:
     """Indices (B, n) of the floor(ratio * N) most confident points, n >= 3."""
     n = max(3, min(logits.shape[1], int(ratio * logits.shape[1])))
     return logits.topk(n, dim=1).indices
+
+
+def widened_refinement(state: dict[str, Tensor], old_topk: int, new_topk: int) -> dict[str, Tensor]:
+    """A CEGC state dict whose HOCE reads ``old_topk`` sorted similarities, made to read
+    ``new_topk`` > old_topk with the same outputs: the refinement's first linear map gets zero
+    weights for the added similarities (its input is [top-k descending, S_X], so the first
+    old_topk columns and S_X's column keep their weights). Training then learns to use them."""
+    if not 0 < old_topk < new_topk:
+        raise ValueError(f"widening HOCE needs 0 < old_topk < new_topk, got {old_topk} -> {new_topk}")
+    key = "hoce.refine.0.0.weight"
+    w = state[key]
+    if w.shape[1] != old_topk + 1:
+        raise ValueError(f"{key} reads {w.shape[1] - 1} similarities, not {old_topk}")
+    wide = w.new_zeros((w.shape[0], new_topk + 1))
+    wide[:, :old_topk] = w[:, :old_topk]
+    wide[:, new_topk] = w[:, old_topk]
+    return {**state, key: wide}
