@@ -84,19 +84,22 @@ class Manager:
         self.ex.add_node(self.node)
         self.spinner = Spinner(self.ex)
 
-    def _call(self, client, request):
+    def _call(self, client, request, repeat: bool = False):
+        """The answer to ``request``; ``repeat`` (queries only) sends it again while unanswered
+        (rh.call_idempotent), a transition is sent once."""
         assert client.wait_for_service(timeout_sec=TIMEOUT), f"no service {client.srv_name}"
-        future = client.call_async(request)
-        assert rh.wait_for(future.done, TIMEOUT), f"{client.srv_name}: no answer"
-        return future.result()
+        if repeat:
+            answer = rh.call_idempotent(client, request, TIMEOUT)
+        else:
+            future = client.call_async(request)
+            answer = future.result() if rh.wait_for(future.done, TIMEOUT) else None
+        assert answer is not None, f"{client.srv_name}: no answer"
+        return answer
 
     def state(self) -> str:
         from lifecycle_msgs.srv import GetState
 
-        assert self.get.wait_for_service(timeout_sec=TIMEOUT), f"no service {self.get.srv_name}"
-        answer = rh.call_idempotent(self.get, GetState.Request(), TIMEOUT)
-        assert answer is not None, f"{self.get.srv_name}: no answer"
-        return answer.current_state.label
+        return self._call(self.get, GetState.Request(), repeat=True).current_state.label
 
     def transition(self, transition_id: int) -> bool:
         from lifecycle_msgs.srv import ChangeState
