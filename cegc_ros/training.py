@@ -516,7 +516,7 @@ class Trainer:
         7Scenes-protocol copies), mean rotation error, and the training losses' match figures."""
         self.model.eval()
         reg = Registrar(self.model, self.device, "", {}, PreprocessConfig(), EngineConfig(device=self.device))
-        ok, errs, accs, precs = [], [], [], []
+        ok, errs, accs, precs, aucs = [], [], [], [], []
         for pair, b in zip(self.val_pairs, self.val_batches):
             res = reg.register(pair.source, pair.target)
             T = pair.T_target_source
@@ -529,11 +529,13 @@ class Trainer:
             _, parts = _loss(self.cfg, out, bb)
             accs.append(parts["match_acc"])
             precs.append(parts.get("top100_precision", math.nan))
+            aucs.append(parts.get("overlap_auc", math.nan))
         self.model.train()
         e = np.array(errs)
         return {"val_recall": float(np.mean(ok)), "val_rre_median": float(np.median(e)),
                 "val_rre_mean": float(e.mean()), "val_match_acc": float(np.mean(accs)),
-                "val_top100_precision": float(np.mean(precs))}
+                "val_top100_precision": float(np.mean(precs)),
+                "val_overlap_auc": float(np.nanmean(aucs)) if np.isfinite(aucs).any() else math.nan}
 
     def run(self) -> dict[str, float]:
         cfg = self.cfg.train
@@ -541,9 +543,10 @@ class Trainer:
         (self.out / "config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
         log_path = self.out / "metrics.csv"
         fields = ["step", "elapsed_min", "points", "max_angle", "min_overlap", "loss", "l_overlap", "l_pose",
-                  "l_corr", "l_conf", "l_inlier", "l_desc", "l_row", "l_rank", "match_acc", "cand_recall",
-                  "top100_precision", "inlier_frac", "overlap_acc", "l_distill", "val_recall", "val_rre_median",
-                  "val_rre_mean", "val_match_acc", "val_top100_precision"]
+                  "l_corr", "l_conf", "l_inlier", "l_desc", "l_row", "l_rank", "l_overlap_rank",
+                  "match_acc", "cand_recall", "top100_precision", "inlier_frac", "overlap_acc", "overlap_auc",
+                  "l_distill", "val_recall", "val_rre_median", "val_rre_mean", "val_match_acc",
+                  "val_top100_precision", "val_overlap_auc"]
         new_log = not log_path.exists()
         if not new_log:     # a resumed run appends under the columns its log was started with
             with open(log_path, newline="", encoding="utf-8") as f:

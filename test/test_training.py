@@ -4,6 +4,7 @@ the noise curriculum."""
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -473,6 +474,52 @@ def test_rank_loss_asks_each_pair_to_rank_its_true_candidates_above_its_hardest_
     x = bad.clone().requires_grad_(True)
     rank_loss(x, inl, 8).backward()
     assert x.grad[1, 5] > 0 > x.grad[1, 0]
+
+
+def test_within_auc_scores_each_rows_order_and_leaves_out_rows_of_one_class():
+    """within_auc: 1 when every positive of a row outscores its negatives, 0 reversed, the mean
+    over rows; a row with one class only is left out, and nan when no row has both."""
+    from cegc_ros.model.losses import within_auc
+    labels = torch.tensor([[1.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    right = torch.tensor([[0.9, 0.8, 0.2, 0.1], [0.5, 0.4, 0.3, 0.2], [0.1, 0.2, 0.3, 0.4]])
+    assert within_auc(right, labels) == pytest.approx(1.0)
+    assert within_auc(-right, labels) == pytest.approx(0.0)
+    half = torch.tensor([[0.9, 0.1, 0.5, 0.0], [0.5, 0.4, 0.3, 0.2], [0.0, 0.0, 0.0, 0.0]])
+    # row 0: positive 0.9 beats both negatives, 0.1 beats only 0.0 -> 3 of 4; row 1: 1
+    assert within_auc(half, labels) == pytest.approx((0.75 + 1.0) / 2)
+    assert math.isnan(within_auc(right[2:], labels[2:]))
+
+
+def test_candidate_loss_overlap_ranking_term_asks_overlapping_points_above_the_others():
+    """candidate_loss with overlap_rank > 0: HOCE logits that put each cloud's overlapping
+    points above its non-overlapping ones score a small l_overlap_rank and overlap_auc 1, the
+    reversed order a large one and 0, and the term enters the total with its weight."""
+    from cegc_ros.model.cegc import CandidateOutput
+    from cegc_ros.model.losses import CandidateLossConfig, candidate_loss
+    g = torch.Generator().manual_seed(0)
+    n = 32
+    shared = torch.rand(1, n, 3, generator=g)
+    src = torch.cat([shared, torch.rand(1, n, 3, generator=g) + torch.tensor([5.0, 0, 0])], dim=1)
+    R, t = torch.eye(3)[None], torch.tensor([[0.1, 0.0, 0.0]])
+    tgt = torch.cat([shared, torch.rand(1, n, 3, generator=g) - torch.tensor([5.0, 0, 0])], dim=1) + t[:, None]
+    N = 2 * n                                       # the first n points of each cloud overlap
+    cand = torch.arange(N)[None, :, None]
+    feats = torch.randn(1, N, 8, generator=g)
+    lab = torch.cat([torch.ones(n), torch.zeros(n)])[None]
+
+    def parts(sign: float, weight: float) -> dict[str, float]:
+        logits = sign * (4.0 * lab - 2.0)
+        out = CandidateOutput(logits, logits, cand, torch.zeros(1, N, 1), torch.zeros(1, N), feats, feats)
+        return candidate_loss(out, src, tgt, R, t, CandidateLossConfig(overlap_rank=weight))[1]
+
+    right, flipped = parts(1.0, 1.0), parts(-1.0, 1.0)
+    assert right["overlap_auc"] == 1.0 and flipped["overlap_auc"] == 0.0
+    # every pair of (overlapping, hard non-overlapping) points 4 apart: softplus(-4), softplus(4)
+    assert right["l_overlap_rank"] == pytest.approx(0.0181, abs=1e-3)
+    assert flipped["l_overlap_rank"] == pytest.approx(4.0181, abs=1e-3)
+    off = parts(-1.0, 0.0)
+    assert off["l_overlap_rank"] == 0.0
+    assert flipped["loss"] - off["loss"] == pytest.approx(flipped["l_overlap_rank"], rel=1e-4)
 
 
 def test_candidate_loss_with_the_ranking_term_prefers_the_right_order():

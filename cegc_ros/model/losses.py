@@ -14,6 +14,8 @@ so they follow the point density.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -112,6 +114,14 @@ class CandidateLossConfig:
     row: float = 0.2             # BCE of w_i against "one of row i's candidates is a true match"
     rank: float = 0.0            # within-pair ranking of the engine's confidences (rank_loss)
     rank_negatives: int = 256    # the pair's most confident false candidates each true one must beat
+    #: within-cloud ranking of HOCE's overlap logits (:func:`rank_loss` on each cloud's points:
+    #: every overlapping point above the cloud's ``overlap_rank_negatives`` most confident
+    #: non-overlapping ones). Why: the overlap BCE pools a batch, so a low-overlap pair's few
+    #: overlapping points weigh little and HOCE's estimate there is compressed (10th-90th
+    #: percentiles 0.39-0.55 on the low-overlap validation pairs) with its errors on the points a
+    #: wrong pose aligns (docs/accuracy.md); the engine uses only each pair's order of them.
+    overlap_rank: float = 0.0
+    overlap_rank_negatives: int = 128
     label_factor: float = 2.0    # match threshold = factor x median NN spacing of the target
     nce_temperature: float = 0.1
     #: The descriptor InfoNCE's positives for a source point: "nearest" (its nearest target point
@@ -142,7 +152,9 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
       candidate pairs with the engine's weights (differentiable, so the weights learn to
       favour pairs that pull the pose right);
     - with ``rank`` > 0, :func:`rank_loss` on the engine's confidences: within each pair, every
-      true candidate above that pair's most confident false ones.
+      true candidate above that pair's most confident false ones;
+    - with ``overlap_rank`` > 0, :func:`rank_loss` on HOCE's overlap logits of each cloud:
+      every overlapping point above that cloud's most confident non-overlapping ones.
     All inputs in the normalised frame: src (B, N, 3), tgt (B, M, 3), R_gt (B, 3, 3), t_gt (B, 3).
     """
     from .svd import weighted_kabsch
@@ -181,8 +193,11 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     log_w = F.logsigmoid(out.scores.float()) + F.logsigmoid(out.src_overlap_logits.float())[:, :, None]
     l_k = rank_loss(log_w.reshape(B, N * k), inl.reshape(B, N * k), cfg.rank_negatives) \
         if cfg.rank > 0 else torch.zeros((), device=src.device)
+    l_or = 0.5 * rank_loss(out.src_overlap_logits.float(), lab_x, cfg.overlap_rank_negatives) \
+        + 0.5 * rank_loss(out.tgt_overlap_logits.float(), lab_y, cfg.overlap_rank_negatives) \
+        if cfg.overlap_rank > 0 else torch.zeros((), device=src.device)
     total = cfg.overlap * l_o + cfg.inlier * l_i + cfg.descriptor * l_d + cfg.pose * l_r + cfg.row * l_w \
-        + cfg.rank * l_k
+        + cfg.rank * l_k + cfg.overlap_rank * l_or
     with torch.no_grad():
         best = out.scores.argmax(dim=-1, keepdim=True)
         hit = inl.gather(2, best).squeeze(-1)
@@ -192,12 +207,29 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
     parts = {
         "loss": float(total.detach()), "l_overlap": float(l_o.detach()), "l_inlier": float(l_i.detach()),
         "l_desc": float(l_d.detach()), "l_pose": float(l_r.detach()), "l_row": float(l_w.detach()),
-        "l_rank": float(l_k.detach()),
+        "l_rank": float(l_k.detach()), "l_overlap_rank": float(l_or.detach()),
         "inlier_frac": float(inl.mean()), "cand_recall": float(learned_recall),
         "match_acc": float((hit * has).sum() / has.sum().clamp_min(1.0)), "top100_precision": float(top_prec),
         "overlap_acc": float(((out.src_overlap_logits > 0).float() == lab_x).float().mean()),
+        "overlap_auc": within_auc(out.src_overlap_logits.float(), lab_x),
     }
     return total, parts
+
+
+@torch.no_grad()
+def within_auc(scores: Tensor, labels: Tensor) -> float:
+    """Mean over a batch's rows of the rank AUC of scores (B, N) against labels (B, N) in
+    {0, 1}: the chance that a positive of a row outscores a negative of the same row (rows
+    without both classes are left out; nan when none has both). HOCE's within-pair quality,
+    which the engine uses (it ranks each pair's points), where overlap_acc pools the batch."""
+    ranks = scores.argsort(dim=1).argsort(dim=1).double() + 1.0          # 1..N, ties broken
+    pos = labels.double().sum(1)
+    neg = labels.shape[1] - pos
+    both = (pos > 0) & (neg > 0)
+    if not bool(both.any()):
+        return math.nan
+    auc = ((ranks * labels.double()).sum(1) - pos * (pos + 1) / 2) / (pos * neg).clamp_min(1.0)
+    return float(auc[both].mean())
 
 
 def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:
