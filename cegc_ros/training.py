@@ -416,6 +416,8 @@ class Trainer:
         changes = self._load_weights(state)
         if "optimizer" in state:
             self.opt.load_state_dict(state["optimizer"])
+            for group in self.opt.param_groups:     # the config's rate wins (an anneal resumes so)
+                group["lr"] = self.cfg.train.lr
             self.step = int(state["step"])
             self.elapsed = float(state["elapsed"])
             # a best score measured on other validation pairs does not compare

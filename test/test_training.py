@@ -85,6 +85,17 @@ def test_tiny_run_logs_validates_checkpoints_and_resumes(tmp_path):
     assert again.step == 4
     for k, v in again.model.state_dict().items():
         assert torch.equal(v, after[k])
+    # a resume under a config with another learning rate (an anneal) takes the config's rate
+    # and keeps the optimizer's moments
+    slow = tiny_config(tmp_path / "run", max_steps=6)
+    slow.train.lr = 1e-5
+    annealed = Trainer(slow, resume=tmp_path / "run" / "last.pt", device="cpu", fragments=frags,
+                       val_fragments=frags, progress=False)
+    assert [g["lr"] for g in annealed.opt.param_groups] == [1e-5]
+    assert [g["lr"] for g in again.opt.param_groups] == [cfg2.train.lr] != [1e-5]
+    m_again, m_slow = again.opt.state_dict()["state"], annealed.opt.state_dict()["state"]
+    assert m_slow.keys() == m_again.keys() and len(m_slow) > 0
+    assert all(torch.equal(m_slow[i]["exp_avg"], m_again[i]["exp_avg"]) for i in m_slow)
     # a log begun under other columns (an older version's, without l_rank) keeps them: the rows
     # appended on resume line up under its header
     log = tmp_path / "run" / "metrics.csv"
