@@ -15,7 +15,6 @@ so they follow the point density.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import torch
@@ -234,7 +233,8 @@ def within_auc(scores: Tensor, labels: Tensor) -> float:
 
 def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:
     """Within-pair ranking of the engine's confidences: log_w (B, K) = log of the confidence
-    the engine ranks correspondences by, inl (B, K) in {0, 1} the ground-truth labels.
+    the engine ranks correspondences by, inl (B, K) in {0, 1} the ground-truth labels. (The
+    overlap ranking term passes HOCE's overlap logits and labels of one cloud's points instead.)
 
     Each true correspondence of a pair must outrank that pair's ``negatives`` most confident
     false ones: mean over (true, hard false) of softplus(log_w_false - log_w_true), each pair

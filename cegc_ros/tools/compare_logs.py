@@ -61,8 +61,11 @@ def paired(a: dict[int, dict[str, str]], b: dict[int, dict[str, str]], columns: 
                  and a[s].get(col) and b[s].get(col)]
         if not steps:
             raise LogError(f"no step in [{lo}, {'end' if hi is None else hi}) where both logs have {col!r}")
-        xa = [float(a[s][col]) for s in steps]
-        xb = [float(b[s][col]) for s in steps]
+        try:
+            xa = [float(a[s][col]) for s in steps]
+            xb = [float(b[s][col]) for s in steps]
+        except ValueError:
+            raise LogError(f"column {col!r} holds a value that is not a number") from None
         d = [x - y for x, y in zip(xa, xb)]
         n = len(d)
         mean = sum(d) / n
