@@ -4,7 +4,9 @@
         docs/training/campaign_2026-12-06b/arm14_metrics.csv [--steps 10200:16500]
 
 cegc-train draws its pairs by step (``training.PairStream``), so two arms with the same data
-settings see the same pair at the same step, and the figures each logged step reports for its
+settings and the same pair cache contents (the trainer indexes the cache when it starts: an arm
+started while the cache was still growing drew other pairs until it was restarted) see the same
+pair at the same step, and the figures each logged step reports for its
 one pair (match accuracy, the learned candidates' recall, the losses) differ between the arms by
 what the arms change, not by which pairs they drew. The mean difference over the steps both
 logs hold, with its standard error, then separates changes of a few thousandths that the
