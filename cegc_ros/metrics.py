@@ -129,6 +129,20 @@ class PairErrors:
     trans_error: np.ndarray     # (K,) isotropic
 
 
+def rank_auc(scores: np.ndarray, true: np.ndarray) -> float:
+    """The chance that a true item scores above a false one (ties count half), scores (N,)
+    against boolean true (N,); NaN without both classes. How well a confidence ranks: the
+    overlap estimate's points, the correspondences' confidences (select_weights, the trainer's
+    log)."""
+    true = np.asarray(true, bool)
+    P, N = int(true.sum()), int((~true).sum())
+    if not (P and N):
+        return float("nan")
+    from scipy.stats import rankdata
+    r = rankdata(scores)                                                 # ties share their mean rank
+    return float((r[true].sum() - P * (P + 1) / 2) / (P * N))
+
+
 def pair_errors(T_gt: np.ndarray, T_est: np.ndarray) -> PairErrors:
     """Per-pair errors of estimates (K, 4, 4) against ground truths (K, 4, 4) (or single (4, 4))."""
     T_gt = _as_transforms(T_gt).reshape(-1, 4, 4)

@@ -499,6 +499,8 @@ def test_within_auc_scores_each_rows_order_and_leaves_out_rows_of_one_class():
     # row 0: positive 0.9 beats both negatives, 0.1 beats only 0.0 -> 3 of 4; row 1: 1
     assert within_auc(half, labels) == pytest.approx((0.75 + 1.0) / 2)
     assert math.isnan(within_auc(right[2:], labels[2:]))
+    # ties count half, as select_weights' overlap_auc counts them (bf16 logits tie)
+    assert within_auc(torch.zeros(1, 4), labels[:1]) == pytest.approx(0.5)
 
 
 def test_candidate_loss_overlap_ranking_term_asks_overlapping_points_above_the_others():

@@ -217,18 +217,15 @@ def candidate_loss(out: CandidateOutput, src: Tensor, tgt: Tensor, R_gt: Tensor,
 
 @torch.no_grad()
 def within_auc(scores: Tensor, labels: Tensor) -> float:
-    """Mean over a batch's rows of the rank AUC of scores (B, N) against labels (B, N) in
-    {0, 1}: the chance that a positive of a row outscores a negative of the same row (rows
-    without both classes are left out; nan when none has both). HOCE's within-pair quality,
+    """Mean over a batch's rows of :func:`cegc_ros.metrics.rank_auc` of scores (B, N) against
+    labels (B, N) in {0, 1}: the chance that a positive of a row outscores a negative of the
+    same row, ties counting half (bf16 logits tie), as select_weights' overlap_auc counts it.
+    Rows without both classes are left out; nan when none has both. HOCE's within-pair quality,
     which the engine uses (it ranks each pair's points), where overlap_acc pools the batch."""
-    ranks = scores.argsort(dim=1).argsort(dim=1).double() + 1.0          # 1..N, ties broken
-    pos = labels.double().sum(1)
-    neg = labels.shape[1] - pos
-    both = (pos > 0) & (neg > 0)
-    if not bool(both.any()):
-        return math.nan
-    auc = ((ranks * labels.double()).sum(1) - pos * (pos + 1) / 2) / (pos * neg).clamp_min(1.0)
-    return float(auc[both].mean())
+    from ..metrics import rank_auc
+    rows = [rank_auc(s, t > 0) for s, t in zip(scores.float().cpu().numpy(), labels.cpu().numpy())]
+    rows = [a for a in rows if not math.isnan(a)]
+    return sum(rows) / len(rows) if rows else math.nan
 
 
 def rank_loss(log_w: Tensor, inl: Tensor, negatives: int) -> Tensor:

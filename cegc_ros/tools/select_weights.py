@@ -82,23 +82,14 @@ def ranking(res: Any, T: np.ndarray, top: int = 100) -> dict[str, float]:
     c = getattr(res, "correspondences", None)
     if c is None or not len(c):
         return {}
+    from cegc_ros.metrics import rank_auc
     src = res.source_points[c[:, 0]].astype(np.float64)
     tgt = res.target_points[c[:, 1]].astype(np.float64)
     true = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - tgt, axis=1) < res.inlier_distance
     w = np.asarray(res.weights, np.float64)
     order = np.argsort(-w, kind="stable")
     return {"true_correspondences": int(true.sum()), f"true_in_top{top}": int(true[order[:top]].sum()),
-            "ranking_auc": _auc(w, true)}
-
-
-def _auc(scores: np.ndarray, true: np.ndarray) -> float:
-    """The chance that a true item scores above a false one (ties count half); NaN without both."""
-    P, N = int(true.sum()), int((~true).sum())
-    if not (P and N):
-        return float("nan")
-    from scipy.stats import rankdata
-    r = rankdata(scores)                                                 # ties share their mean rank
-    return float((r[true].sum() - P * (P + 1) / 2) / (P * N))
+            "ranking_auc": rank_auc(w, true)}
 
 
 def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndarray,
@@ -115,6 +106,7 @@ def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndar
     from scipy.spatial import cKDTree
 
     from cegc_ros.data.protocols import transform_points
+    from cegc_ros.metrics import rank_auc
     out: dict[str, float] = {}
     for side, pts, conf, other, M in (("source", res.source_points, res.source_overlap, target, T),
                                       ("target", res.target_points, res.target_overlap, source,
@@ -125,7 +117,7 @@ def overlap_ranking(res: Any, source: np.ndarray, target: np.ndarray, T: np.ndar
         conf = np.asarray(conf, np.float64)
         top = np.argsort(-conf, kind="stable")[:max(1, int(round(keep * len(conf))))]
         out[f"{side}_overlap_share"] = float(true.mean())
-        out[f"{side}_overlap_auc"] = _auc(conf, true)
+        out[f"{side}_overlap_auc"] = rank_auc(conf, true)
         out[f"{side}_overlap_kept"] = float(true[top].sum() / true.sum()) if true.any() else float("nan")
     return out
 
