@@ -101,6 +101,14 @@ class EngineConfig:
         "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
         "geometric fitness (share of the network's source points that land near a target "
         "point); 0 ranks by the count alone, as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
+    verify_score: str = field(default="features", metadata=_meta(
+        "What the verification multiplies each hypothesis' count by: 'fitness' (the share of the "
+        "network's source points that land near a target point) or 'features' (over those "
+        "points, the sum of the cosine between the learned features of the point and of the "
+        "target point it lands on: a wrong pose at low overlap explains as many points as the "
+        "right one, but of places the network tells apart). 'fitness' on the paper's path "
+        "(candidates 'all'). See cegc_ros/refine.py: fitness_agreements.",
+        choices=("fitness", "features")))
     explore_seeds: int = field(default=200, metadata=_meta(
         "Seeds of the compatibility estimator drawn at random (seeded) besides its spectral "
         "ones: at low overlap the spectral seeds gather on a wrong consistent cluster. Chosen "

@@ -307,7 +307,8 @@ class Registrar:
 
     #: The ``engine`` settings :meth:`finish` reads (the estimate, refine and verify stages);
     #: the others act in :meth:`match_pair` or when the registrar is built.
-    FINISH_SETTINGS = ("estimator", "inlier_factor", "verify_hypotheses", "explore_seeds", "free_space",
+    FINISH_SETTINGS = ("estimator", "inlier_factor", "verify_hypotheses", "verify_score", "explore_seeds",
+                       "free_space",
                        "sure_fitness", "sure_seeds", "sure_ambiguity", "refine", "icp_max_distance",
                        "icp_max_iterations", "icp_points", "min_valid_fitness")
 
@@ -361,8 +362,11 @@ class Registrar:
                                          explore_seeds=eng.explore_seeds, free_space=eng.free_space,
                                          sure_fitness=eng.sure_fitness, sure_seeds=eng.sure_seeds,
                                          sure_ambiguity=eng.sure_ambiguity)
+            desc = None
+            if eng.verify_score == "features" and m.source_features is not None:
+                desc = (m.source_features, m.target_features)
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
-                                     (src_m, tgt_m), (src, tgt))
+                                     (src_m, tgt_m), (src, tgt), desc)
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t
             valid, reason = est.valid, est.reason

@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .refine import fitnesses
+from .refine import fitness_agreements, fitnesses
 from .visibility import FreeSpace
 
 ESTIMATORS = ("compatibility", "svd")
@@ -321,21 +321,27 @@ def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
-            known: dict[int, float]) -> tuple[int, np.ndarray, float, np.ndarray]:
+            known: dict[int, tuple[float, float]],
+            descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
     chosen one's fitness, their verification scores: exact where they decide the choice or
-    :func:`ambiguity`, see :func:`_free_space_scores`). ``visibility`` None: count x fitness
-    alone. ``known``: fitnesses of hypotheses (by index) an earlier call measured; this call's
-    are added to it."""
+    :func:`ambiguity`, see :func:`_free_space_scores`). Each score is count x fitness, or with
+    ``descriptors`` count x feature agreement (:func:`cegc_ros.refine.fitness_agreements`); times the
+    free-space factor unless ``visibility`` is None. ``known``: (fitness, fitness or agreement)
+    of hypotheses (by index) an earlier call measured; this call's are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
     key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
     top = first[np.argsort(-total[first])][:cfg.verify]
     new = np.array([i for i in top if int(i) not in known], dtype=np.int64)
     if len(new):
-        known.update(zip(new.tolist(), fitnesses(R[new], t[new], clouds[0], clouds[1], thr).tolist()))
-    fit = np.array([known[int(i)] for i in top])
-    rank = total[top] * fit
+        if descriptors is None:
+            fits = agree = fitnesses(R[new], t[new], clouds[0], clouds[1], thr)
+        else:
+            fits, agree = fitness_agreements(R[new], t[new], clouds[0], clouds[1], *descriptors, thr)
+        known.update(zip(new.tolist(), zip(fits.tolist(), agree.tolist())))
+    fit = np.array([known[int(i)][0] for i in top])
+    rank = total[top] * np.array([known[int(i)][1] for i in top])
     if cfg.free_space > 0 and visibility is not None:
         rank = _free_space_scores(rank, R[top], t[top], cfg.free_space, FreeSpace(*visibility),
                                   np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
@@ -415,12 +421,14 @@ def _distinct(R: np.ndarray, t: np.ndarray, b: int, source: np.ndarray, distance
 def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
                            cfg: CompatibilityConfig | None = None,
                            clouds: tuple[np.ndarray, np.ndarray] | None = None,
-                           visibility: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+                           visibility: tuple[np.ndarray, np.ndarray] | None = None,
+                           descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
     """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0.
     ``clouds``: the (Ns, 3) source and (Nt, 3) target point sets the correspondences were drawn
     from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR);
     ``visibility``: the two clouds in their sensors' frames for its free-space check (None: no
-    check)."""
+    check); ``descriptors``: unit descriptors of the clouds' points ((Ns, C), (Nt, C)): the
+    verification weighs each hypothesis by its feature agreement instead of its fitness."""
     cfg = cfg or CompatibilityConfig()
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
@@ -464,12 +472,12 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     rivalry = 0.0
     if verifying:
         explore = cfg.explore_seeds > 0
-        known: dict[int, float] = {}
+        known: dict[int, tuple[float, float]] = {}
         source = np.asarray(clouds[0], np.float64)
 
         def verified(vis: tuple[np.ndarray, np.ndarray] | None) -> tuple[int, np.ndarray, float, float]:
             """_verify's choice, the verified ones and the choice's fitness, with its ambiguity."""
-            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known)
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known, descriptors)
             return best, top, fit, ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
 
         def unsure(fit: float, rivalry: float) -> bool:
@@ -534,11 +542,12 @@ def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distanc
 def estimate(name: str, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,
              cfg: CompatibilityConfig | None = None,
              clouds: tuple[np.ndarray, np.ndarray] | None = None,
-             visibility: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
-    """Dispatch by estimator name (``ESTIMATORS``); ``clouds`` and ``visibility`` only matter
-    to ``compatibility``."""
+             visibility: tuple[np.ndarray, np.ndarray] | None = None,
+             descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+    """Dispatch by estimator name (``ESTIMATORS``); ``clouds``, ``visibility`` and
+    ``descriptors`` only matter to ``compatibility``."""
     if name == "compatibility":
-        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility)
+        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility, descriptors)
     if name == "svd":
         return estimate_svd(src, tgt, w, inlier_distance, cfg)
     raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")

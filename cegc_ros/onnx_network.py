@@ -36,7 +36,7 @@ OPSET = 17
 #: Export sizes (the graph is traced at these; the point axes stay dynamic).
 EXPORT_POINTS = 256
 _INPUTS = ("src", "tgt", "src_normals", "tgt_normals", "src_desc", "tgt_desc", "extra")
-OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores")
+OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores", "src_features", "tgt_features")
 
 
 class OnnxExportError(RuntimeError):
@@ -78,7 +78,8 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
         def forward(self, src, tgt, sn, tn, sd, td, extra):  # noqa: ANN001, ANN202
             o = self.model.score_candidates(src, tgt, sn, tn, sd, td, k_learned=learned_candidates,
                                             extra=extra, stack=False)   # any two point counts
-            return o.src_overlap_logits, o.tgt_overlap_logits, o.candidates, o.scores
+            return (o.src_overlap_logits, o.tgt_overlap_logits, o.candidates, o.scores, o.src_features,
+                    o.tgt_features)
     wrapper = CandidatePath().eval()
     g = torch.Generator().manual_seed(0)
     n = EXPORT_POINTS
@@ -93,7 +94,8 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
     dynamic = {"src": {1: "n"}, "src_normals": {1: "n"}, "src_desc": {1: "n"}, "extra": {1: "n", 2: "ke"},
                "tgt": {1: "m"}, "tgt_normals": {1: "m"}, "tgt_desc": {1: "m"},
                "candidates": {1: "n", 2: "k"}, "scores": {1: "n", 2: "k"},
-               "src_overlap_logits": {1: "n"}, "tgt_overlap_logits": {1: "m"}}
+               "src_overlap_logits": {1: "n"}, "tgt_overlap_logits": {1: "m"},
+               "src_features": {1: "n"}, "tgt_features": {1: "m"}}
     tmp = out.with_suffix(".onnx.tmp")
     try:
         with torch.inference_mode(False), torch.no_grad():
@@ -136,6 +138,8 @@ class OnnxCandidates:
     tgt_overlap_logits: Any   # (1, M)
     candidates: Any           # (1, N, k) int64
     scores: Any               # (1, N, k)
+    src_features: Any         # (1, N, C2) after self / cross attention
+    tgt_features: Any         # (1, M, C2)
 
 
 def session_options(threads: int = 0) -> Any:
@@ -193,6 +197,9 @@ class OnnxNetwork:
             return None, f"{path.name} does not load: {type(err).__name__}: {err}".splitlines()[0]
         if net.checkpoint_sha256 != sha256_of(checkpoint):
             return None, f"{path.name} was exported from another checkpoint (re-export it)"
+        missing = [o for o in OUTPUTS if o not in {x.name for x in net.session.get_outputs()}]
+        if missing:
+            return None, f"{path.name} lacks the output {missing[0]} of this version (re-export it)"
         return net, ""
 
     def score_candidates(self, src: Any, tgt: Any, src_normals: Any, tgt_normals: Any, src_desc: Any,

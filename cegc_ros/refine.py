@@ -52,14 +52,38 @@ def fitness(source: np.ndarray, target: np.ndarray, T: np.ndarray, distance: flo
 def fitnesses(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray, distance: float
               ) -> np.ndarray:
     """:func:`fitness` of H poses at once: R (H, 3, 3), t (H, 3), source (Ns, 3), target (Nt, 3) -> (H,)."""
+    near, _ = _nearest(R, t, source, target, distance)
+    return near.mean(1)
+
+
+def fitness_agreements(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray,
+                       source_desc: np.ndarray, target_desc: np.ndarray, distance: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fitnesses` of H poses and, from the same search, their feature agreement: for
+    each source point the pose puts within ``distance`` of its nearest target point, the cosine
+    of the two points' unit descriptors ((Ns, C), (Nt, C)), summed and floored at 0 -> (H,), (H,).
+
+    A fitness that weighs each point the pose explains by whether the network sees the same
+    place there: at low overlap a wrong pose (a floor laid on the other floor) can explain as
+    many points as the right one, but of places the features tell apart (docs/pipeline.md)."""
+    near, j = _nearest(R, t, source, target, distance)
+    sim = np.asarray(source_desc, np.float32) @ np.asarray(target_desc, np.float32).T    # (Ns, Nt) cosines
+    cos = sim[np.arange(near.shape[1])[None], np.where(near, j, 0)]                     # (H, Ns)
+    return near.mean(1), np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
+
+
+def _nearest(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray, distance: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(H, Ns) whether each source point lands within ``distance`` of a target point under each
+    pose, and (H, Ns) that target point's index (meaningless where not)."""
     from scipy.spatial import cKDTree
     moved = np.asarray(source, np.float64)[None] @ np.transpose(R, (0, 2, 1)) + np.asarray(t)[:, None]
     # The search stops at the distance itself (a hair beyond it, so that a neighbour at exactly
     # the distance still counts): the same answers as a wider bound, 1.5x faster.
     bound = float(distance) * (1.0 + 1e-9) if distance > 0 else np.nextafter(0.0, 1.0)
-    d, _ = cKDTree(np.asarray(target, np.float64)).query(moved.reshape(-1, 3), k=1,
-                                                          distance_upper_bound=bound)
-    return (d.reshape(len(R), -1) <= distance).mean(1)
+    target = np.asarray(target, np.float64)
+    d, j = cKDTree(target).query(moved.reshape(-1, 3), k=1, distance_upper_bound=bound)
+    return (d <= distance).reshape(len(R), -1), np.minimum(j, len(target) - 1).reshape(len(R), -1)
 
 
 def median_spacing(points: np.ndarray) -> float:

@@ -479,3 +479,31 @@ def test_box_corner_is_three_seeded_faces_of_the_unit_cube():
     assert c.min() >= 0.0 and c.max() <= 1.0 and (c > 0).sum(1).min() == 2
     np.testing.assert_array_equal(c, box_corner(50))
     assert not np.array_equal(c, box_corner(50, seed=1))
+
+
+def test_verify_score_features_hands_the_network_features_to_the_verification(tiny_checkpoint, monkeypatch):
+    """engine.verify_score features: the estimator gets the network points' unit attention
+    features (the learned candidates' feature space) and the pair is registered; 'fitness', and
+    the paper's path (which has no candidate features), give it none."""
+    from cegc_ros import estimator
+    seen = []
+    real = estimator.estimate
+
+    def spy(*args, **kwargs):
+        seen.append(args[8] if len(args) > 8 else kwargs.get("descriptors"))
+        return real(*args, **kwargs)
+    monkeypatch.setattr(estimator, "estimate", spy)
+    src, tgt, _ = _moved_resamples()
+    pre = PreprocessConfig(num_points=256)
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre,
+                                    engine=EngineConfig(verify_score="features"))
+    res = reg.register(src, tgt)
+    ds, dt = seen[-1]
+    assert ds.shape == (len(res.source_points), reg.model.cfg.feat_dim) and dt.shape[0] == len(res.target_points)
+    np.testing.assert_allclose(np.linalg.norm(ds, axis=1), 1.0, atol=1e-5)
+    reg.update(engine=EngineConfig(verify_score="fitness"))
+    reg.register(src, tgt)
+    assert seen[-1] is None
+    reg.update(engine=EngineConfig(verify_score="features", candidates="all"))
+    reg.register(src, tgt)
+    assert seen[-1] is None

@@ -419,3 +419,33 @@ def test_free_space_scores_are_checked_lazily_with_the_same_choice_and_ambiguity
     seen = np.isfinite(lazy)
     assert np.array_equal(lazy[seen], full[seen]) and int(lazy.argmax()) == int(full.argmax())
     assert ambiguity(R, t, lazy, wall[:500], 0.2) == ambiguity(R, t, full, wall[:500], 0.2)
+
+
+def test_feature_agreement_picks_the_truth_where_a_slide_fits_as_well():
+    """A lattice laid on itself one step off fits almost as well as the truth (7/8 of the points
+    land on a point), and more correspondences agree with the slide: count x fitness takes the
+    slide. Given the points' descriptors (the same place has the same descriptor in both
+    clouds), count x feature agreement takes the truth: the slide brings together points the
+    descriptors tell apart."""
+    rng = np.random.default_rng(3)
+    g = np.arange(8) * 0.1
+    cloud = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)            # (512, 3)
+    R = Rotation.from_euler("xyz", [5, -10, 20], degrees=True).as_matrix()
+    t = np.array([0.2, -0.1, 0.3])
+    target = cloud @ R.T + t
+    slide = np.array([0.1, 0.0, 0.0])                                    # one lattice step in x
+    true_idx = rng.choice(512, 40, replace=False)
+    wrong_idx = rng.choice(np.flatnonzero(cloud[:, 0] < 0.65), 50, replace=False)
+    noise_idx = rng.choice(512, 300)
+    src = np.concatenate([cloud[true_idx], cloud[wrong_idx], cloud[noise_idx]])
+    tgt = np.concatenate([target[true_idx], (cloud[wrong_idx] + slide) @ R.T + t,
+                          target[rng.choice(512, 300)]])
+    w = np.concatenate([np.full(40, 0.8), np.ones(50), np.full(300, 0.3)])
+    desc = rng.normal(size=(512, 32))
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    cfg = CompatibilityConfig(verify=50)
+    by_fitness = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target))
+    by_features = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target), descriptors=(desc, desc))
+    np.testing.assert_allclose(by_fitness.t, t + R @ slide, atol=0.01)                  # the slide
+    assert rotation_error_deg(R, by_features.R) < 0.5 and np.linalg.norm(by_features.t - t) < 0.01
+    assert by_features.inliers[:40].all() and not by_features.inliers[40:90].any()

@@ -368,6 +368,7 @@ def test_ablation_rows_change_what_the_engine_does(tmp_path, tiny_checkpoint, sm
         assert T.shape == (4, 4) and np.isfinite(T).all()
     assert runners["cegc-uniform"].engine.confidence == "uniform"
     assert runners["cegc-uniform"].engine.candidates == "fpfh"
+    assert runners["cegc-uniform"].engine.verify_score == "fitness"         # no learned features either
     assert np.all(results["cegc-uniform"].weights == 1.0)
     assert not np.all(results["cegc+icp"].weights == 1.0)
     assert results["cegc"].refined == "none" and results["cegc+icp"].refined == "icp"

@@ -107,3 +107,32 @@ def test_fitnesses_count_exactly_the_points_within_the_distance():
     expected = np.array([(cdist(m, target).min(1) <= 0.05).mean() for m in moved])
     np.testing.assert_array_equal(got, expected)
     assert got[0] > 0.45                 # the 100 near points and the boundary ones that round inside
+
+
+def test_feature_agreement_sums_the_cosines_of_the_points_a_pose_brings_together():
+    """refine.fitness_agreements against a loop over the points: for each source point within
+    the distance of its nearest target point under the pose, that pair's cosine, summed and
+    floored at 0 per pose; its fitness is refine.fitnesses'."""
+    from scipy.spatial import cKDTree
+
+    from cegc_ros.refine import fitness_agreements, fitnesses
+    rng = np.random.default_rng(5)
+    src, tgt = rng.uniform(0, 1, (300, 3)), rng.uniform(0, 1, (250, 3))
+    ds, dt = rng.normal(size=(300, 8)), rng.normal(size=(250, 8))
+    ds /= np.linalg.norm(ds, axis=1, keepdims=True)
+    dt /= np.linalg.norm(dt, axis=1, keepdims=True)
+    R = Rotation.from_euler("xyz", rng.uniform(-10, 10, (6, 3)), degrees=True).as_matrix()
+    t = rng.normal(0, 0.05, (6, 3))
+    fit, got = fitness_agreements(R, t, src, tgt, ds, dt, 0.06)
+    np.testing.assert_array_equal(fit, fitnesses(R, t, src, tgt, 0.06))
+    for h in range(6):
+        d, j = cKDTree(tgt).query(src @ R[h].T + t[h])
+        expect = sum(float(ds[i] @ dt[j[i]]) for i in range(len(src)) if d[i] <= 0.06)
+        assert got[h] == pytest.approx(max(expect, 0.0), rel=1e-5, abs=1e-5)
+        assert fit[h] == pytest.approx(float((d <= 0.06).mean()))
+    assert (got > 0).any() and (fit > 0.1).all()
+    # the same descriptors at the same places: every point agrees fully under the identity
+    one = (np.eye(3)[None], np.zeros((1, 3)))
+    assert fitness_agreements(*one, src, src, ds, ds, 1e-6)[1][0] == pytest.approx(300.0, rel=1e-5)
+    # opposite descriptors: the sum is negative, floored at 0
+    assert fitness_agreements(*one, src, src, ds, -ds, 1e-6)[1][0] == 0.0

@@ -8,9 +8,9 @@ on top of the node's parameter file (``params/register_node.yaml`` or ``--params
     cegc+icp           the node's settings (learned + FPFH candidates, learned confidence,
                        compatibility estimator, ICP)
     cegc               the same without ICP (engine.refine none)
-    cegc-uniform       FPFH candidates and uniform weights: the pipeline without its learned
-                       part (the network's answers are ignored; SC2-PCR-style on the network
-                       points' FPFH, then ICP)
+    cegc-uniform       FPFH candidates, uniform weights, verification by fitness: the pipeline
+                       without its learned part (the network's answers are ignored; SC2-PCR-style
+                       on the network points' FPFH, then ICP)
     cegc-learned-cand  candidates from the learned feature space only
     cegc-fpfh-cand     candidates from FPFH only, learned confidence
     cegc-svd           the paper's confidence-weighted SVD instead of the compatibility estimator
@@ -36,7 +36,7 @@ from cegc_ros.evaluation import EvalError
 CEGC_ROWS: dict[str, dict[str, Any]] = {
     "cegc+icp": {},
     "cegc": {"engine.refine": "none"},
-    "cegc-uniform": {"engine.confidence": "uniform", "engine.candidates": "fpfh"},
+    "cegc-uniform": {"engine.confidence": "uniform", "engine.candidates": "fpfh", "engine.verify_score": "fitness"},
     "cegc-learned-cand": {"engine.candidates": "learned"},
     "cegc-fpfh-cand": {"engine.candidates": "fpfh"},
     "cegc-svd": {"engine.estimator": "svd"},
