@@ -99,8 +99,9 @@ class EngineConfig:
         choices=("compatibility", "svd")))
     verify_hypotheses: int = field(default=50, metadata=_meta(
         "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
-        "geometric fitness (share of the network's source points that land near a target "
-        "point); 0 ranks by the count alone, as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
+        "verify_score (the learned features' agreement, or the geometric fitness: share of the "
+        "network's source points that land near a target point); 0 ranks by the count alone, "
+        "as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
     verify_score: str = field(default="features", metadata=_meta(
         "What the verification multiplies each hypothesis' count by: 'fitness' (the share of the "
         "network's source points that land near a target point) or 'features' (over those "

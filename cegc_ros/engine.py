@@ -362,11 +362,9 @@ class Registrar:
                                          explore_seeds=eng.explore_seeds, free_space=eng.free_space,
                                          sure_fitness=eng.sure_fitness, sure_seeds=eng.sure_seeds,
                                          sure_ambiguity=eng.sure_ambiguity)
-            desc = None
-            if eng.verify_score == "features" and m.source_features is not None:
-                desc = (m.source_features, m.target_features)
+            sim = m.similarity if eng.verify_score == "features" else None
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
-                                     (src_m, tgt_m), (src, tgt), desc)
+                                     (src_m, tgt_m), (src, tgt), sim)
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t
             valid, reason = est.valid, est.reason

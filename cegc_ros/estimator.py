@@ -90,7 +90,8 @@ class CompatibilityConfig:
     k1: int = 30
     k2: int = 20
     refine_iterations: int = 10
-    verify: int = 0                   # distinct hypotheses re-ranked by count x fitness (needs clouds; 0: off)
+    verify: int = 0                   # distinct hypotheses re-ranked by count x fitness or feature
+                                      # agreement (needs clouds; 0: off)
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
     sure_fitness: float = 1.01        # second pass (exploring seeds, free space) below this fitness of the first choice
@@ -322,11 +323,11 @@ def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
             known: dict[int, tuple[float, float]],
-            descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[int, np.ndarray, float, np.ndarray]:
+            similarity: np.ndarray | None = None) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
     chosen one's fitness, their verification scores: exact where they decide the choice or
     :func:`ambiguity`, see :func:`_free_space_scores`). Each score is count x fitness, or with
-    ``descriptors`` count x feature agreement (:func:`cegc_ros.refine.fitness_agreements`); times the
+    ``similarity`` count x feature agreement (:func:`cegc_ros.refine.fitness_agreements`); times the
     free-space factor unless ``visibility`` is None. ``known``: (fitness, fitness or agreement)
     of hypotheses (by index) an earlier call measured; this call's are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
@@ -335,10 +336,10 @@ def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: Co
     top = first[np.argsort(-total[first])][:cfg.verify]
     new = np.array([i for i in top if int(i) not in known], dtype=np.int64)
     if len(new):
-        if descriptors is None:
+        if similarity is None:
             fits = agree = fitnesses(R[new], t[new], clouds[0], clouds[1], thr)
         else:
-            fits, agree = fitness_agreements(R[new], t[new], clouds[0], clouds[1], *descriptors, thr)
+            fits, agree = fitness_agreements(R[new], t[new], clouds[0], clouds[1], similarity, thr)
         known.update(zip(new.tolist(), zip(fits.tolist(), agree.tolist())))
     fit = np.array([known[int(i)][0] for i in top])
     rank = total[top] * np.array([known[int(i)][1] for i in top])
@@ -422,12 +423,12 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                            cfg: CompatibilityConfig | None = None,
                            clouds: tuple[np.ndarray, np.ndarray] | None = None,
                            visibility: tuple[np.ndarray, np.ndarray] | None = None,
-                           descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+                           similarity: np.ndarray | None = None) -> Estimate:
     """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0.
     ``clouds``: the (Ns, 3) source and (Nt, 3) target point sets the correspondences were drawn
     from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR);
     ``visibility``: the two clouds in their sensors' frames for its free-space check (None: no
-    check); ``descriptors``: unit descriptors of the clouds' points ((Ns, C), (Nt, C)): the
+    check); ``similarity``: (Ns, Nt) descriptor similarity (cosines) of the clouds' points: the
     verification weighs each hypothesis by its feature agreement instead of its fitness."""
     cfg = cfg or CompatibilityConfig()
     src = np.asarray(src, np.float64)
@@ -477,7 +478,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
 
         def verified(vis: tuple[np.ndarray, np.ndarray] | None) -> tuple[int, np.ndarray, float, float]:
             """_verify's choice, the verified ones and the choice's fitness, with its ambiguity."""
-            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known, descriptors)
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known, similarity)
             return best, top, fit, ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
 
         def unsure(fit: float, rivalry: float) -> bool:
@@ -543,11 +544,11 @@ def estimate(name: str, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_
              cfg: CompatibilityConfig | None = None,
              clouds: tuple[np.ndarray, np.ndarray] | None = None,
              visibility: tuple[np.ndarray, np.ndarray] | None = None,
-             descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Estimate:
+             similarity: np.ndarray | None = None) -> Estimate:
     """Dispatch by estimator name (``ESTIMATORS``); ``clouds``, ``visibility`` and
-    ``descriptors`` only matter to ``compatibility``."""
+    ``similarity`` only matter to ``compatibility``."""
     if name == "compatibility":
-        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility, descriptors)
+        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility, similarity)
     if name == "svd":
         return estimate_svd(src, tgt, w, inlier_distance, cfg)
     raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")

@@ -40,11 +40,10 @@ class Matches:
     rank: np.ndarray              # (K,) int64: the candidate's rank within its source point's list
     source_overlap: np.ndarray    # (Ns,) float32 HOCE overlap confidence
     target_overlap: np.ndarray    # (Nt,) float32
-    #: (Ns, C2), (Nt, C2) float32 unit-length attention features of the network points (the
+    #: (Ns, Nt) float32 cosine similarity of the network points' attention features (the
     #: learned candidates' feature space), for the verification's feature agreement
     #: (``engine.verify_score``); None on the paper's path (``engine.candidates: all``)
-    source_features: np.ndarray | None = None
-    target_features: np.ndarray | None = None
+    similarity: np.ndarray | None = None
 
 
 def fpfh_neighbours(desc_source: np.ndarray, desc_target: np.ndarray, k: int) -> np.ndarray:
@@ -106,7 +105,7 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
             cand = out.match[0].cpu().numpy()[:, None]                          # (n1, 1)
             w = out.weights[0].float().cpu().numpy()[:, None]
             src_rows = out.src_idx[0].cpu().numpy()
-            fx = fy = None
+            sim = None
         else:
             extra = None
             if eng.candidates in ("fpfh", "both"):
@@ -120,17 +119,13 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
             w = (torch.sigmoid(out.scores[0]) * torch.sigmoid(out.src_overlap_logits[0])[:, None]
                  ).float().cpu().numpy()
             src_rows = np.arange(len(cand))
-            fx, fy = (_unit(f[0].float().cpu().numpy()) for f in (out.src_features, out.tgt_features))
+            # in torch, whose threads the engine sets (a numpy product would wake OpenBLAS's)
+            fx, fy = (torch.nn.functional.normalize(f[0].float(), dim=-1) for f in (out.src_features, out.tgt_features))
+            sim = (fx @ fy.T).cpu().numpy()                                    # (N, M)
     finite_outputs(candidate_confidences=w, source_overlap_scores=s_ov, target_overlap_scores=t_ov,
-                   **({} if fx is None else {"source_features": fx, "target_features": fy}))
+                   **({} if sim is None else {"feature_similarities": sim}))
     if eng.confidence == "uniform":
         w = np.ones_like(w)
     corr, weights, rank = select(cand, w, eng.max_correspondences)
     corr[:, 0] = src_rows[corr[:, 0]]
-    return Matches(corr, weights, rank, s_ov, t_ov, fx, fy)
-
-
-def _unit(f: np.ndarray) -> np.ndarray:
-    """(N, C) rows scaled to unit length (zero rows stay zero), float32."""
-    n = np.linalg.norm(f, axis=1, keepdims=True)
-    return (f / np.where(n > 0, n, 1.0)).astype(np.float32)
+    return Matches(corr, weights, rank, s_ov, t_ov, sim)

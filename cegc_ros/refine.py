@@ -57,18 +57,17 @@ def fitnesses(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarr
 
 
 def fitness_agreements(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       source_desc: np.ndarray, target_desc: np.ndarray, distance: float
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       similarity: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`fitnesses` of H poses and, from the same search, their feature agreement: for
-    each source point the pose puts within ``distance`` of its nearest target point, the cosine
-    of the two points' unit descriptors ((Ns, C), (Nt, C)), summed and floored at 0 -> (H,), (H,).
+    each source point the pose puts within ``distance`` of its nearest target point, the two
+    points' descriptor similarity (``similarity`` (Ns, Nt): cosines), summed and floored at 0
+    -> (H,), (H,).
 
     A fitness that weighs each point the pose explains by whether the network sees the same
     place there: at low overlap a wrong pose (a floor laid on the other floor) can explain as
     many points as the right one, but of places the features tell apart (docs/pipeline.md)."""
     near, j = _nearest(R, t, source, target, distance)
-    sim = np.asarray(source_desc, np.float32) @ np.asarray(target_desc, np.float32).T    # (Ns, Nt) cosines
-    cos = sim[np.arange(near.shape[1])[None], np.where(near, j, 0)]                     # (H, Ns)
+    cos = np.asarray(similarity)[np.arange(near.shape[1])[None], np.where(near, j, 0)]   # (H, Ns)
     return near.mean(1), np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
 
 

@@ -4,8 +4,9 @@ A cloud in its sensor's frame (the origin is the viewpoint, as a sensor's PointC
 more than where its surfaces are: along each ray from the origin, space nearer than the first
 return is empty. A wrong pose that lays one cloud's floor on the other's usually puts the rest
 of that cloud (walls, furniture) into that seen-through space; the right pose does not. The
-verification of the estimator (cegc_ros/estimator.py) ranks its hypotheses by count x fitness x
-exp(-``engine.free_space`` x the share of violating points, both directions); chosen on the
+verification of the estimator (cegc_ros/estimator.py) ranks its hypotheses by count x fitness
+(or feature agreement, ``engine.verify_score``) x exp(-``engine.free_space`` x the share of
+violating points, both directions); chosen on the
 synthetic validation pairs (docs/pipeline.md).
 
 Range images: the directions from the origin binned by azimuth and elevation in

@@ -482,15 +482,15 @@ def test_box_corner_is_three_seeded_faces_of_the_unit_cube():
 
 
 def test_verify_score_features_hands_the_network_features_to_the_verification(tiny_checkpoint, monkeypatch):
-    """engine.verify_score features: the estimator gets the network points' unit attention
-    features (the learned candidates' feature space) and the pair is registered; 'fitness', and
-    the paper's path (which has no candidate features), give it none."""
+    """engine.verify_score features: the estimator gets the cosine similarities of the network
+    points' attention features (the learned candidates' feature space); 'fitness', and the
+    paper's path (which has no candidate features), give it none."""
     from cegc_ros import estimator
     seen = []
     real = estimator.estimate
 
     def spy(*args, **kwargs):
-        seen.append(args[8] if len(args) > 8 else kwargs.get("descriptors"))
+        seen.append(args[8] if len(args) > 8 else kwargs.get("similarity"))
         return real(*args, **kwargs)
     monkeypatch.setattr(estimator, "estimate", spy)
     src, tgt, _ = _moved_resamples()
@@ -498,9 +498,15 @@ def test_verify_score_features_hands_the_network_features_to_the_verification(ti
     reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu", preprocess=pre,
                                     engine=EngineConfig(verify_score="features"))
     res = reg.register(src, tgt)
-    ds, dt = seen[-1]
-    assert ds.shape == (len(res.source_points), reg.model.cfg.feat_dim) and dt.shape[0] == len(res.target_points)
-    np.testing.assert_allclose(np.linalg.norm(ds, axis=1), 1.0, atol=1e-5)
+    sim = seen[-1]
+    assert sim.shape == (len(res.source_points), len(res.target_points))
+    assert np.abs(sim).max() <= 1.0 + 1e-5 and sim.std() > 0.01
+    # the learned candidates are each source point's most similar target points
+    m = reg.match_pair(src, tgt).matches
+    np.testing.assert_array_equal(m.similarity, sim)
+    learned = m.correspondences[m.rank == 0]
+    assert len(learned) > 50
+    np.testing.assert_array_equal(sim[learned[:, 0]].argmax(1), learned[:, 1])
     reg.update(engine=EngineConfig(verify_score="fitness"))
     reg.register(src, tgt)
     assert seen[-1] is None

@@ -445,7 +445,7 @@ def test_feature_agreement_picks_the_truth_where_a_slide_fits_as_well():
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
     cfg = CompatibilityConfig(verify=50)
     by_fitness = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target))
-    by_features = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target), descriptors=(desc, desc))
+    by_features = estimate_compatibility(src, tgt, w, 0.05, cfg, clouds=(cloud, target), similarity=desc @ desc.T)
     np.testing.assert_allclose(by_fitness.t, t + R @ slide, atol=0.01)                  # the slide
     assert rotation_error_deg(R, by_features.R) < 0.5 and np.linalg.norm(by_features.t - t) < 0.01
     assert by_features.inliers[:40].all() and not by_features.inliers[40:90].any()

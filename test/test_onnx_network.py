@@ -60,11 +60,9 @@ def test_the_engine_uses_it_by_default_with_the_same_confidences():
     assert (a.runtime, b.runtime) == ("onnxruntime", "torch") and ort_.runtime_note == ""
     np.testing.assert_allclose(a.source_overlap, b.source_overlap, atol=LOGIT_TOL)
     np.testing.assert_allclose(np.sort(a.weights), np.sort(b.weights), atol=LOGIT_TOL)
-    # the verification's features (engine.verify_score: features) too, unit length
+    # the verification's feature similarities (engine.verify_score: features) too
     fa, fb = (r.match_pair(src, tgt).matches for r in (ort_, ref))
-    np.testing.assert_allclose(fa.source_features, fb.source_features, atol=LOGIT_TOL)
-    np.testing.assert_allclose(fa.target_features, fb.target_features, atol=LOGIT_TOL)
-    np.testing.assert_allclose(np.linalg.norm(fa.source_features, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(fa.similarity, fb.similarity, atol=LOGIT_TOL)
     # Settings the export does not serve run torch, without a word to the caller.
     for eng in (EngineConfig(candidates="fpfh"), EngineConfig(learned_candidates=4)):
         ort_.update(engine=eng)

@@ -111,8 +111,8 @@ def test_fitnesses_count_exactly_the_points_within_the_distance():
 
 def test_feature_agreement_sums_the_cosines_of_the_points_a_pose_brings_together():
     """refine.fitness_agreements against a loop over the points: for each source point within
-    the distance of its nearest target point under the pose, that pair's cosine, summed and
-    floored at 0 per pose; its fitness is refine.fitnesses'."""
+    the distance of its nearest target point under the pose, that pair's cosine (from the
+    similarity matrix), summed and floored at 0 per pose; its fitness is refine.fitnesses'."""
     from scipy.spatial import cKDTree
 
     from cegc_ros.refine import fitness_agreements, fitnesses
@@ -123,7 +123,7 @@ def test_feature_agreement_sums_the_cosines_of_the_points_a_pose_brings_together
     dt /= np.linalg.norm(dt, axis=1, keepdims=True)
     R = Rotation.from_euler("xyz", rng.uniform(-10, 10, (6, 3)), degrees=True).as_matrix()
     t = rng.normal(0, 0.05, (6, 3))
-    fit, got = fitness_agreements(R, t, src, tgt, ds, dt, 0.06)
+    fit, got = fitness_agreements(R, t, src, tgt, ds @ dt.T, 0.06)
     np.testing.assert_array_equal(fit, fitnesses(R, t, src, tgt, 0.06))
     for h in range(6):
         d, j = cKDTree(tgt).query(src @ R[h].T + t[h])
@@ -133,6 +133,6 @@ def test_feature_agreement_sums_the_cosines_of_the_points_a_pose_brings_together
     assert (got > 0).any() and (fit > 0.1).all()
     # the same descriptors at the same places: every point agrees fully under the identity
     one = (np.eye(3)[None], np.zeros((1, 3)))
-    assert fitness_agreements(*one, src, src, ds, ds, 1e-6)[1][0] == pytest.approx(300.0, rel=1e-5)
+    assert fitness_agreements(*one, src, src, ds @ ds.T, 1e-6)[1][0] == pytest.approx(300.0, rel=1e-5)
     # opposite descriptors: the sum is negative, floored at 0
-    assert fitness_agreements(*one, src, src, ds, -ds, 1e-6)[1][0] == 0.0
+    assert fitness_agreements(*one, src, src, -ds @ ds.T, 1e-6)[1][0] == 0.0
