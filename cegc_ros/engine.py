@@ -308,9 +308,8 @@ class Registrar:
     #: The ``engine`` settings :meth:`finish` reads (the estimate, refine and verify stages);
     #: the others act in :meth:`match_pair` or when the registrar is built.
     FINISH_SETTINGS = ("estimator", "inlier_factor", "verify_hypotheses", "verify_score", "explore_seeds",
-                       "free_space",
-                       "sure_fitness", "sure_seeds", "sure_ambiguity", "refine", "icp_max_distance",
-                       "icp_max_iterations", "icp_points", "min_valid_fitness")
+                       "free_space", "sure_fitness", "sure_seeds", "sure_ambiguity", "refine",
+                       "icp_max_distance", "icp_max_iterations", "icp_points", "min_valid_fitness")
 
     def finish(self, matched: Matched) -> RegistrationResult:
         """The last three stages of :meth:`register` (estimate, refine, verify) on
