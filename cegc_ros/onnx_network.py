@@ -197,7 +197,8 @@ class OnnxNetwork:
             return None, f"{path.name} does not load: {type(err).__name__}: {err}".splitlines()[0]
         if net.checkpoint_sha256 != sha256_of(checkpoint):
             return None, f"{path.name} was exported from another checkpoint (re-export it)"
-        missing = [o for o in OUTPUTS if o not in {x.name for x in net.session.get_outputs()}]
+        have = {x.name for x in net.session.get_outputs()}
+        missing = [o for o in OUTPUTS if o not in have]
         if missing:
             return None, f"{path.name} lacks the output {missing[0]} of this version (re-export it)"
         return net, ""

@@ -67,14 +67,14 @@ def fitness_agreements(R: np.ndarray, t: np.ndarray, source: np.ndarray, target:
     place there: at low overlap a wrong pose (a floor laid on the other floor) can explain as
     many points as the right one, but of places the features tell apart (docs/pipeline.md)."""
     near, j = _nearest(R, t, source, target, distance)
-    cos = np.asarray(similarity)[np.arange(near.shape[1])[None], np.where(near, j, 0)]   # (H, Ns)
+    cos = np.asarray(similarity)[np.arange(near.shape[1])[None], j]                     # (H, Ns)
     return near.mean(1), np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
 
 
 def _nearest(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray, distance: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """(H, Ns) whether each source point lands within ``distance`` of a target point under each
-    pose, and (H, Ns) that target point's index (meaningless where not)."""
+    pose, and (H, Ns) that target point's index (a valid index that means nothing where not)."""
     from scipy.spatial import cKDTree
     moved = np.asarray(source, np.float64)[None] @ np.transpose(R, (0, 2, 1)) + np.asarray(t)[:, None]
     # The search stops at the distance itself (a hair beyond it, so that a neighbour at exactly
