@@ -119,9 +119,9 @@ def match(model: Any, ps: PreparedCloud, pt: PreparedCloud, eng: EngineConfig, d
             w = (torch.sigmoid(out.scores[0]) * torch.sigmoid(out.src_overlap_logits[0])[:, None]
                  ).float().cpu().numpy()
             src_rows = np.arange(len(cand))
-            # in torch, whose threads the engine sets (a numpy product would wake OpenBLAS's)
-            fx, fy = (torch.nn.functional.normalize(f[0].float(), dim=-1) for f in (out.src_features, out.tgt_features))
-            sim = (fx @ fy.T).cpu().numpy()                                    # (N, M)
+            # the network's own (HOCE's M_S, computed once; in torch or ONNX Runtime, whose
+            # threads the engine sets: a numpy product would wake OpenBLAS's)
+            sim = out.similarity[0].float().cpu().numpy()                       # (N, M)
     finite_outputs(candidate_confidences=w, source_overlap_scores=s_ov, target_overlap_scores=t_ov,
                    **({} if sim is None else {"feature_similarities": sim}))
     if eng.confidence == "uniform":

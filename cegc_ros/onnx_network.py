@@ -36,7 +36,7 @@ OPSET = 17
 #: Export sizes (the graph is traced at these; the point axes stay dynamic).
 EXPORT_POINTS = 256
 _INPUTS = ("src", "tgt", "src_normals", "tgt_normals", "src_desc", "tgt_desc", "extra")
-OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores", "src_features", "tgt_features")
+OUTPUTS = ("src_overlap_logits", "tgt_overlap_logits", "candidates", "scores", "similarity")
 
 
 class OnnxExportError(RuntimeError):
@@ -78,8 +78,7 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
         def forward(self, src, tgt, sn, tn, sd, td, extra):  # noqa: ANN001, ANN202
             o = self.model.score_candidates(src, tgt, sn, tn, sd, td, k_learned=learned_candidates,
                                             extra=extra, stack=False)   # any two point counts
-            return (o.src_overlap_logits, o.tgt_overlap_logits, o.candidates, o.scores, o.src_features,
-                    o.tgt_features)
+            return o.src_overlap_logits, o.tgt_overlap_logits, o.candidates, o.scores, o.similarity
     wrapper = CandidatePath().eval()
     g = torch.Generator().manual_seed(0)
     n = EXPORT_POINTS
@@ -95,7 +94,7 @@ def export_onnx(model: Any, checkpoint: str | Path, out: str | Path | None = Non
                "tgt": {1: "m"}, "tgt_normals": {1: "m"}, "tgt_desc": {1: "m"},
                "candidates": {1: "n", 2: "k"}, "scores": {1: "n", 2: "k"},
                "src_overlap_logits": {1: "n"}, "tgt_overlap_logits": {1: "m"},
-               "src_features": {1: "n"}, "tgt_features": {1: "m"}}
+               "similarity": {1: "n", 2: "m"}}
     tmp = out.with_suffix(".onnx.tmp")
     try:
         with torch.inference_mode(False), torch.no_grad():
@@ -138,8 +137,7 @@ class OnnxCandidates:
     tgt_overlap_logits: Any   # (1, M)
     candidates: Any           # (1, N, k) int64
     scores: Any               # (1, N, k)
-    src_features: Any         # (1, N, C2) after self / cross attention
-    tgt_features: Any         # (1, M, C2)
+    similarity: Any           # (1, N, M) cosines of the attention features (HOCE's M_S)
 
 
 def session_options(threads: int = 0) -> Any:

@@ -288,6 +288,12 @@ def test_learned_candidates_are_the_nearest_in_feature_space_and_extra_ones_foll
     sim = torch.nn.functional.normalize(out.src_features, dim=-1) @ \
         torch.nn.functional.normalize(out.tgt_features, dim=-1).transpose(1, 2)
     assert torch.equal(out.candidates[..., :3], sim.topk(3, dim=-1).indices)
+    # the similarity it returns is that matrix, the one HOCE read (M_S): computed once
+    assert out.similarity.shape == (1, 50, 60) and torch.allclose(out.similarity, sim, atol=1e-6)
+    with torch.no_grad():
+        fx, fy = model.features(*args)
+        lx, ly = model.hoce(fx, fy)
+    assert torch.allclose(lx, out.src_overlap_logits, atol=1e-5) and torch.allclose(ly, out.tgt_overlap_logits, atol=1e-5)
     with pytest.raises(ValueError, match="needs k_learned > 0 or extra"):
         model.score_candidates(*args, k_learned=0)
 

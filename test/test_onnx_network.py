@@ -44,7 +44,7 @@ def test_the_shipped_export_is_of_the_shipped_weights():
 def test_the_shipped_export_gives_torchs_outputs(num_points):
     ckpt = default_weights()
     p = parity(ckpt, onnx_path_for(ckpt), num_points=num_points)
-    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["features"] < LOGIT_TOL
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["similarity"] < LOGIT_TOL
     # The learned top 3 may differ where two target points tie in cosine similarity to within
     # the kernels' rounding (which the CPU decides: 6 of 5120 differed on an AVX2 EPYC, 0-5 on
     # AVX-512 machines); every difference is such a tie, and they are rare.
@@ -100,17 +100,17 @@ def test_export_of_any_checkpoint_and_a_stale_export_is_refused(tiny, capsys):
     assert auto.register(_corner(3000, 2), _corner(3000, 3)).runtime == "torch"
     with pytest.raises(CheckpointError, match="engine.runtime onnxruntime: b.onnx was exported from another"):
         Registrar.from_checkpoint(b, device="cpu", preprocess=pre, engine=EngineConfig(runtime="onnxruntime"))
-    # An export of b made before the attention features were an output (engine.verify_score):
+    # An export of b made before the features' similarities were an output (engine.verify_score):
     # refused by name, torch runs.
     import onnx
     assert export_main([str(b)]) == 0
     proto = onnx.load(str(onnx_path_for(b)))
-    kept = [o for o in proto.graph.output if o.name not in ("src_features", "tgt_features")]
+    kept = [o for o in proto.graph.output if o.name != "similarity"]
     del proto.graph.output[:]
     proto.graph.output.extend(kept)
     onnx.save(proto, str(onnx_path_for(b)))
     net, why = OnnxNetwork.for_checkpoint(b, None)
-    assert net is None and why == "b.onnx lacks the output src_features of this version (re-export it)"
+    assert net is None and why == "b.onnx lacks the output similarity of this version (re-export it)"
     onnx_path_for(b).write_bytes(b"not an onnx file")
     net, why = OnnxNetwork.for_checkpoint(b, None)
     assert net is None and why.startswith("b.onnx does not load: ")

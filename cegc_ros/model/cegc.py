@@ -37,13 +37,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .cams import CAMS
 from .config import ModelConfig
 from .features import AGNN, ContextEnhancer, knn, paper_edges, ppf_edges
-from .hoce import HOCE, top_n_indices
+from .hoce import HOCE, cosine_similarity, top_n_indices
 from .svd import weighted_kabsch
 
 
@@ -75,6 +74,7 @@ class CandidateOutput:
     conf_logits: Tensor          # (B, N) logits of w_i (row confidence)
     src_features: Tensor         # (B, N, C2) after self/cross attention
     tgt_features: Tensor         # (B, M, C2)
+    similarity: Tensor | None = None   # (B, N, M) cosines of the two features (HOCE's M_S)
 
 
 def _take(x: Tensor, idx: Tensor) -> Tensor:
@@ -139,11 +139,11 @@ class CEGC(nn.Module):
         see :meth:`features`.
         """
         fx, fy = self.features(src, tgt, src_normals, tgt_normals, src_desc, tgt_desc, stack)
-        lx, ly = self.hoce(fx, fy)                                       # (B, N), (B, M)
+        sim = cosine_similarity(fx, fy)                                  # (B, N, M), computed once
+        lx, ly = self.hoce(fx, fy, sim)                                  # (B, N), (B, M)
         parts = []
         k = min(k_learned, tgt.shape[1])
         if k > 0:
-            sim = F.normalize(fx, dim=-1) @ F.normalize(fy, dim=-1).transpose(1, 2)   # (B, N, M)
             parts.append(sim.topk(k, dim=-1).indices)
         if extra is not None:
             parts.append(extra.to(device=src.device, dtype=torch.long))
@@ -151,7 +151,7 @@ class CEGC(nn.Module):
             raise ValueError("score_candidates needs k_learned > 0 or extra candidates")
         cand = torch.cat(parts, dim=-1)                                  # (B, N, k)
         scores, conf = self.cams.score_candidates(src, tgt, fx, fy, cand, src_desc, tgt_desc)
-        return CandidateOutput(lx, ly, cand, scores, conf, fx, fy)
+        return CandidateOutput(lx, ly, cand, scores, conf, fx, fy, sim)
 
     def forward(self, src: Tensor, tgt: Tensor,
                 src_normals: Tensor | None = None, tgt_normals: Tensor | None = None,

@@ -34,14 +34,22 @@ class HOCE(nn.Module):
             top = torch.cat([top, top[..., -1:].expand(-1, -1, self.topk - k)], dim=-1)
         return self.refine(torch.cat([top, s.unsqueeze(-1)], dim=-1)).squeeze(-1)
 
-    def forward(self, fx: Tensor, fy: Tensor) -> tuple[Tensor, Tensor]:
-        """fx (B, N, C), fy (B, M, C) -> overlap logits for X (B, N) and for Y (B, M)."""
+    def forward(self, fx: Tensor, fy: Tensor, ms: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """fx (B, N, C), fy (B, M, C) -> overlap logits for X (B, N) and for Y (B, M). ``ms``:
+        M_S when the caller has it (:func:`cosine_similarity` of fx and fy), else computed."""
         sx = torch.sigmoid(self.semantic(fx)).squeeze(-1)                # (B, N)  S_X
         sy = torch.sigmoid(self.semantic(fy)).squeeze(-1)                # (B, M)  S_Y
-        ms = F.normalize(fx, dim=-1) @ F.normalize(fy, dim=-1).transpose(1, 2)  # (B, N, M)  M_S
+        if ms is None:
+            ms = cosine_similarity(fx, fy)                               # (B, N, M)  M_S
         lx = self._refine(ms * sx.unsqueeze(-1), sx)
         ly = self._refine(ms.transpose(1, 2) * sy.unsqueeze(-1), sy)
         return lx, ly
+
+
+def cosine_similarity(fx: Tensor, fy: Tensor) -> Tensor:
+    """fx (B, N, C), fy (B, M, C) -> (B, N, M) cosines of every source and target feature
+    (HOCE's M_S; the learned candidates' and the verification's feature space)."""
+    return F.normalize(fx, dim=-1) @ F.normalize(fy, dim=-1).transpose(1, 2)
 
 
 def top_n_indices(logits: Tensor, ratio: float) -> Tensor:

@@ -5,7 +5,7 @@
 
 Writes ``<checkpoint>.onnx`` (cegc_ros/onnx_network.py: the candidate path, its point axes
 dynamic, the checkpoint's SHA-256 recorded), then runs both on a synthetic pair and prints one
-line: the largest difference of the overlap logits, the attention features and the pair scores,
+line: the largest difference of the overlap logits, the features' cosine similarities and the pair scores,
 and whether every candidate index agrees. Re-export whenever the weights change: the engine ignores an export of other
 weights. Needs the ``onnx`` package. Errors: one line, exit 1.
 """
@@ -21,8 +21,8 @@ from pathlib import Path
 def parity(checkpoint: str | Path, onnx_path: str | Path, num_points: int = 1024, seed: int = 0
            ) -> dict[str, float]:
     """Torch and ONNX Runtime on one synthetic room-corner pair of ``num_points`` network points:
-    max |difference| of the overlap logits, of the attention features (the verification's
-    ``engine.verify_score: features``) and of the scores of the candidates both chose, the
+    max |difference| of the overlap logits, of the attention features' cosine similarities (the
+    verification's ``engine.verify_score: features``) and of the scores of the candidates both chose, the
     share of candidate indices that agree, and ``tie_gap``: where a source point's learned
     candidates differ as sets, how far (in torch's cosine similarity) the one ONNX Runtime took
     lies below torch's weakest (0 when none differ). A different rounding of the features can
@@ -62,15 +62,12 @@ def parity(checkpoint: str | Path, onnx_path: str | Path, num_points: int = 1024
                float((ref.tgt_overlap_logits - got.tgt_overlap_logits).abs().max()))
     same = ref.candidates == got.candidates        # a near-tie in the learned top-k may swap
     k = net.learned_candidates
-    sim = (torch.nn.functional.normalize(ref.src_features[0], dim=-1)
-           @ torch.nn.functional.normalize(ref.tgt_features[0], dim=-1).T)          # torch's (N, M)
+    sim = ref.similarity[0]                                                         # torch's (N, M)
     mine, theirs = ref.candidates[0, :, :k], got.candidates[0, :, :k]
     weakest = sim.gather(1, mine).min(dim=1).values                                 # (N,)
     gap = (weakest[:, None] - sim.gather(1, theirs)).clamp_min(0.0)                 # 0 where theirs is in torch's top-k
-    feat = max(float((ref.src_features - got.src_features).abs().max()),
-               float((ref.tgt_features - got.tgt_features).abs().max()))
     return {"overlap_logits": diff,
-            "features": feat,
+            "similarity": float((ref.similarity - got.similarity).abs().max()),
             "scores": float((ref.scores - got.scores).abs()[same].max()),
             "candidates_equal": float(same.float().mean()),
             "tie_gap": float(gap.max())}
@@ -97,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, CheckpointError, OnnxExportError) as err:
         print(f"export_onnx: {err}".splitlines()[0], file=sys.stderr)
         return 1
-    print(f"{out}: overlap logits within {p['overlap_logits']:.1e}, features within {p['features']:.1e}, "
+    print(f"{out}: overlap logits within {p['overlap_logits']:.1e}, similarities within {p['similarity']:.1e}, "
           f"scores within {p['scores']:.1e}, "
           f"candidates equal {p['candidates_equal']:.4f}, the others tied within {p['tie_gap']:.1e} "
           f"(torch vs ONNX Runtime, 1024 points)")
