@@ -97,7 +97,7 @@ class EngineConfig:
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
         "confidence-weighted SVD over all of them). See cegc_ros/estimator.py.",
         choices=("compatibility", "svd")))
-    verify_hypotheses: int = field(default=50, metadata=_meta(
+    verify_hypotheses: int = field(default=100, metadata=_meta(
         "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
         "verify_score (the learned features' agreement, or the geometric fitness: share of the "
         "network's source points that land near a target point); 0 ranks by the count alone, "
