@@ -293,7 +293,8 @@ def test_learned_candidates_are_the_nearest_in_feature_space_and_extra_ones_foll
     with torch.no_grad():
         fx, fy = model.features(*args)
         lx, ly = model.hoce(fx, fy)
-    assert torch.allclose(lx, out.src_overlap_logits, atol=1e-5) and torch.allclose(ly, out.tgt_overlap_logits, atol=1e-5)
+    assert torch.allclose(lx, out.src_overlap_logits, atol=1e-5)
+    assert torch.allclose(ly, out.tgt_overlap_logits, atol=1e-5)
     with pytest.raises(ValueError, match="needs k_learned > 0 or extra"):
         model.score_candidates(*args, k_learned=0)
 
