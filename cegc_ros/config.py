@@ -62,6 +62,14 @@ class PreprocessConfig:
         "How the support and network points are drawn: 'grid' (spatially even: one point per "
         "cell of the coarsest grid with enough occupied cells) or 'random' (uniform draw, which "
         "follows the sensor's density). See cegc_ros/geometry.py.", choices=("grid", "random")))
+    normals: str = field(default="sensor", metadata=_meta(
+        "Which side each normal (and so FPFH and the network's inputs) is turned to: 'sensor' "
+        "(towards the cloud frame's origin, the viewpoint of a cloud in its sensor's frame, as a "
+        "sensor's PointCloud2 is: both views of a surface then agree) or 'centroid' (towards "
+        "each cloud's own centroid: for clouds in a map or world frame, or moved off their "
+        "sensor's frame). 'sensor' was chosen on synthetic validation pairs (docs/pipeline.md). "
+        "See cegc_ros/geometry.py: normals_and_fpfh.",
+        choices=("sensor", "centroid")))
     seed: int = field(default=0, metadata=_meta(
         "Seed of the deterministic subsamples.", 0, 2**31 - 1))
 

@@ -45,7 +45,7 @@ _THREAD_ENV_TOO_LATE = apply_thread_environment()
 from . import bounding, estimator, matching, refine  # noqa: E402
 from .matching import NetworkOutputError  # noqa: E402,F401  (re-exported: the engine's error)
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
-from .geometry import LEGACY_FEATURES, box_corner, point_budget, prepare_pair  # noqa: E402
+from .geometry import LEGACY_FEATURES, box_corner, frame_viewpoints, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
@@ -336,7 +336,7 @@ class Registrar:
                                             pre.points_per_network_point)
             ps, pt, norm = prepare_pair(src, tgt, n_net, n_support,
                                         np.random.default_rng(pre.seed), self.model.cfg.features(),
-                                        pre.sampling)
+                                        pre.sampling, frame_viewpoints(pre.normals))
             src_m = ps.points.astype(np.float64) * norm.scale + norm.c_source      # network points, metres
             tgt_m = pt.points.astype(np.float64) * norm.scale + norm.c_target
             spacing = refine.median_spacing(tgt_m)

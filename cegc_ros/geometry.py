@@ -208,9 +208,16 @@ def _grid_cells(points: np.ndarray, n: int, iterations: int = 20) -> np.ndarray 
 
 
 def normals_and_fpfh(points: np.ndarray, normal_radius: float = NORMAL_RADIUS,
-                     fpfh_radius: float = FPFH_RADIUS, fpfh_max_nn: int = FPFH_MAX_NN
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     fpfh_radius: float = FPFH_RADIUS, fpfh_max_nn: int = FPFH_MAX_NN,
+                     viewpoint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) normalised points -> normals (N, 3) float32, FPFH / 100 (N, 33) float32.
+
+    Each normal is turned towards ``viewpoint`` (3,) in the points' frame, or towards the
+    points' centroid when it is None (``preprocess.normals``). FPFH's angles change with a
+    normal's sign, so the two views of a surface give alike descriptors only when their normals
+    agree: turned to their sensors they do (both sensors saw the surface's front), turned to
+    each view's own centroid they disagree wherever the two centroids lie on different sides
+    of a surface, which at low overlap is common.
 
     Open3D's tensor pipeline (``o3d.t``): 2.4-3x faster than the legacy
     ``compute_fpfh_feature`` on one thread at 1024 points (12 vs 28 ms on 20k-point fragments'
@@ -224,7 +231,8 @@ def normals_and_fpfh(points: np.ndarray, normal_radius: float = NORMAL_RADIUS,
     pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts))
     pcd.estimate_normals(max_nn=NORMAL_MAX_NN, radius=normal_radius)
     n = pcd.point.normals.numpy()
-    flip = ((pts.mean(0) - pts) * n).sum(1) < 0
+    toward = pts.mean(0) if viewpoint is None else np.asarray(viewpoint, np.float64)
+    flip = ((toward - pts) * n).sum(1) < 0
     n[flip] *= -1.0
     pcd.point.normals = o3d.core.Tensor(n)
     fpfh = o3d.t.pipelines.registration.compute_fpfh_feature(pcd, max_nn=fpfh_max_nn, radius=fpfh_radius)
@@ -244,9 +252,11 @@ class PreparedCloud:
 def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generator,
                   support_points: int, with_features: bool = True,
                   normal_radius: float = NORMAL_RADIUS, fpfh_radius: float = FPFH_RADIUS,
-                  fpfh_max_nn: int = FPFH_MAX_NN, sampling: str = "grid") -> PreparedCloud:
-    """Support subsample -> normals + FPFH on the support -> network subsample of num_points
-    (both subsamples by ``sampling``, see :func:`subsample`).
+                  fpfh_max_nn: int = FPFH_MAX_NN, sampling: str = "grid",
+                  viewpoint: np.ndarray | None = None) -> PreparedCloud:
+    """Support subsample -> normals + FPFH on the support (normals turned to ``viewpoint``, see
+    :func:`normals_and_fpfh`) -> network subsample of num_points (both subsamples by
+    ``sampling``, see :func:`subsample`).
 
     The feature radii must be those the network was trained with (``ModelConfig.features()``).
     """
@@ -254,7 +264,7 @@ def prepare_cloud(points_n: np.ndarray, num_points: int, rng: np.random.Generato
            else np.arange(len(points_n)))
     pts = points_n[sup]
     if with_features:
-        normals, desc = normals_and_fpfh(pts, normal_radius, fpfh_radius, fpfh_max_nn)
+        normals, desc = normals_and_fpfh(pts, normal_radius, fpfh_radius, fpfh_max_nn, viewpoint)
     else:
         normals = np.zeros_like(pts)
         desc = np.zeros((len(pts), 33), np.float32)
@@ -279,13 +289,31 @@ def point_budget(n_points: int, num_points: int, support_points: int, points_per
     return net, max(net, round(support_points * net / num_points))
 
 
+def frame_viewpoints(normals: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``preprocess.normals`` -> :func:`prepare_pair`'s ``viewpoints``: 'sensor' each cloud's
+    frame origin (a cloud in its sensor's frame, as a sensor's PointCloud2 is), 'centroid' none
+    (each cloud's centroid)."""
+    if normals == "sensor":
+        return np.zeros(3), np.zeros(3)
+    if normals == "centroid":
+        return None, None
+    raise ValueError(f"normals must be 'sensor' or 'centroid', got {normals!r}")
+
+
 def prepare_pair(source: np.ndarray, target: np.ndarray, num_points: int, support_points: int,
-                 rng: np.random.Generator, features: dict[str, Any], sampling: str = "grid"
+                 rng: np.random.Generator, features: dict[str, Any], sampling: str = "grid",
+                 viewpoints: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
                  ) -> tuple[PreparedCloud, PreparedCloud, Normalisation]:
     """The engine's features stage, shared with training: (N, 3), (M, 3) metres (bounded) ->
     both clouds normalised, normals + FPFH on ``support_points``, ``num_points`` network points.
-    ``features``: :meth:`ModelConfig.features` of the network; ``sampling``: :func:`subsample`."""
+    ``features``: :meth:`ModelConfig.features` of the network; ``sampling``: :func:`subsample`;
+    ``viewpoints``: each cloud's sensor position (3,) in its own frame, metres, its normals are
+    turned to, or None to turn them to its centroid (:func:`normals_and_fpfh`)."""
     src_n, tgt_n, norm = normalise_pair(source, target)
-    ps = prepare_cloud(src_n, num_points, rng, support_points=support_points, sampling=sampling, **features)
-    pt = prepare_cloud(tgt_n, num_points, rng, support_points=support_points, sampling=sampling, **features)
+    view_s, view_t = ((None if v is None else (np.asarray(v, np.float64) - c) / norm.scale)
+                      for v, c in zip(viewpoints, (norm.c_source, norm.c_target)))
+    ps = prepare_cloud(src_n, num_points, rng, support_points=support_points, sampling=sampling,
+                       viewpoint=view_s, **features)
+    pt = prepare_cloud(tgt_n, num_points, rng, support_points=support_points, sampling=sampling,
+                       viewpoint=view_t, **features)
     return ps, pt, norm

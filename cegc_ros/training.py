@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -41,7 +42,7 @@ import torch
 from .bounding import bound_pair
 from .config import EngineConfig, PreprocessConfig
 from .engine import Registrar, load_checkpoint, save_checkpoint
-from .geometry import prepare_pair
+from .geometry import frame_viewpoints, prepare_pair
 from .matching import fpfh_neighbours
 from .metrics import rotation_error_deg
 from .model import CEGC, ModelConfig
@@ -95,6 +96,9 @@ class DataConfig:
     val_fragments_prob: float = 0.0    # share of validation pairs that are two-fragment pairs
     pair_cache: str = ""               # a cegc_ros.data PairCache directory of different-view pairs
     val_pair_cache: str = ""           # its validation split (rooms never trained on)
+    # 'sensor': the normals of a cached pair's clouds turned to their sensors, as the engine's
+    # preprocess.normals 'sensor' does (PairSampler.viewpoints); 'centroid': to each cloud's centroid
+    normals: str = "centroid"
 
 
 @dataclass
@@ -168,11 +172,15 @@ class PairSampler:
 
     def __init__(self, fragments: list[Any], noise_sigma: float, features: dict[str, Any],
                  pairs: Any = None, preprocess: PreprocessConfig | None = None,
-                 candidates: tuple[int, int] = (3, 2)) -> None:
+                 candidates: tuple[int, int] = (3, 2), normals: str = "centroid") -> None:
         """``features``: :meth:`ModelConfig.features` of the network being trained; ``pairs``:
-        an indexable of different-view pairs (source, target, T_target_source, info)."""
+        an indexable of different-view pairs (source, target, T_target_source, info);
+        ``normals``: :attr:`DataConfig.normals` (:meth:`viewpoints`; ``preprocess.normals`` is
+        not read: the sampler knows each pair's frames)."""
         if not fragments and pairs is None:
             raise ValueError("no fragments or pairs to sample from")
+        frame_viewpoints(normals)                       # ValueError on an unknown value
+        self.normals = normals
         self.fragments = fragments
         self.pairs = pairs
         self.noise_sigma = noise_sigma
@@ -203,7 +211,20 @@ class PairSampler:
     def sample(self, rng: np.random.Generator, stage: Stage) -> dict[str, torch.Tensor]:
         pair = self.raw(rng, stage)
         return self.to_tensors(pair.source, pair.target, pair.T_target_source, stage.points, rng,
-                               stage.support_points)
+                               stage.support_points, self.viewpoints(pair))
+
+    def viewpoints(self, pair: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Where each cloud's normals are turned (prepare_pair's ``viewpoints``): under
+        ``normals`` 'sensor', a cached pair's sensors: a different-view pair's clouds are each in
+        its sensor's frame (the origins), a copy pair's target is its source's crop moved by
+        T_target_source (its sensor at T's translation); other pairs (7Scenes-protocol copies,
+        box-centred) and 'centroid': the centroids."""
+        kind = pair.info.get("kind") if self.normals == "sensor" else None
+        if kind == "views":
+            return np.zeros(3), np.zeros(3)
+        if kind == "copy":
+            return np.zeros(3), np.asarray(pair.T_target_source, np.float64)[:3, 3].copy()
+        return None, None
 
     def _different_views(self, rng: np.random.Generator, stage: Stage) -> Any:
         """A different-view pair with overlap in [stage.min_overlap, stage.max_overlap], or None."""
@@ -234,13 +255,16 @@ class PairSampler:
         return self._bands[key]
 
     def to_tensors(self, source: np.ndarray, target: np.ndarray, T: np.ndarray, points: int,
-                   rng: np.random.Generator, support_points: int = 0) -> dict[str, torch.Tensor]:
+                   rng: np.random.Generator, support_points: int = 0,
+                   viewpoints: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+                   ) -> dict[str, torch.Tensor]:
         """The engine's bound + features stages (cegc_ros/engine.py) with ``points`` network points
-        drawn from ``support_points`` (0: preprocess.support_points), then tensors with a batch axis."""
+        drawn from ``support_points`` (0: preprocess.support_points), normals turned to
+        ``viewpoints`` (prepare_pair), then tensors with a batch axis."""
         pre = self.preprocess
         bounded = bound_pair(source, target, pre, Registrar.MIN_POINTS)
         ps, pt, norm = prepare_pair(bounded.source, bounded.target, points, support_points or pre.support_points,
-                                    rng, self.features, pre.sampling)
+                                    rng, self.features, pre.sampling, viewpoints)
         R, t_n = norm.to_normalised(T)
         extra = fpfh_neighbours(ps.desc, pt.desc, self.fpfh_k)
 
@@ -391,15 +415,18 @@ class Trainer:
             val_fragments = FragmentCache(cfg.data.cache_dir, cfg.data.val_scenes, cfg.data.val_fragments_per_scene,
                                           seed=1).load(progress=progress and self.rank == 0)
         cands = (cfg.train.learned_candidates, cfg.train.fpfh_candidates)
-        self.sampler = PairSampler(fragments, cfg.data.noise_sigma, features, pairs, candidates=cands)
-        vs = PairSampler(val_fragments or fragments, 0.0, features, val_pairs, candidates=cands)
+        self.sampler = PairSampler(fragments, cfg.data.noise_sigma, features, pairs, candidates=cands,
+                                   normals=cfg.data.normals)
+        vs = PairSampler(val_fragments or fragments, 0.0, features, val_pairs, candidates=cands,
+                         normals=cfg.data.normals)
         vrng = np.random.default_rng(12345)
         final = cfg.train.stages[-1]
         val_stage = Stage(0, 45.0, cfg.data.val_points, final.keep_ratio, cfg.data.val_resample_prob,
                           fragments_prob=cfg.data.val_fragments_prob, noise_max=cfg.data.val_noise_max,
                           min_overlap=0.1, max_overlap=1.0)
         self.val_pairs = [vs.raw(vrng, val_stage) for _ in range(cfg.data.val_pairs)]
-        self.val_batches = [vs.to_tensors(p.source, p.target, p.T_target_source, cfg.data.val_points, vrng)
+        self.val_batches = [vs.to_tensors(p.source, p.target, p.T_target_source, cfg.data.val_points, vrng,
+                                          viewpoints=vs.viewpoints(p))
                             for p in self.val_pairs]
 
     @property
@@ -520,6 +547,9 @@ class Trainer:
         reg = Registrar(self.model, self.device, "", {}, PreprocessConfig(), EngineConfig(device=self.device))
         ok, errs, accs, precs, aucs = [], [], [], [], []
         for pair, b in zip(self.val_pairs, self.val_batches):
+            # the engine's normals as the sampler turns them (a copy pair's moved sensor: centroid)
+            sensor = self.cfg.data.normals == "sensor" and pair.info.get("kind") == "views"
+            reg.update(preprocess=dataclasses.replace(reg.preprocess, normals="sensor" if sensor else "centroid"))
             res = reg.register(pair.source, pair.target)
             T = pair.T_target_source
             re = float(rotation_error_deg(T[:3, :3], res.T_target_source[:3, :3]))

@@ -513,3 +513,60 @@ def test_verify_score_features_hands_the_network_features_to_the_verification(ti
     reg.update(engine=EngineConfig(verify_score="features", candidates="all"))
     reg.register(src, tgt)
     assert seen[-1] is None
+
+
+def _table_views() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two views from one sensor 1 m above a 1 m table top (z = 0): the first also sees the
+    floor 1 m below, around the table; the second, a wall rising 3 m behind the table. Each
+    cloud in its sensor's frame (the sensor at the origin), and the table's mask."""
+    rng = np.random.default_rng(0)
+    top = np.c_[rng.uniform(0, 1, 3000), rng.uniform(0, 1, 3000), np.zeros(3000)]
+    floor = np.c_[rng.uniform(-1, 2, 6000), rng.uniform(-1, 2, 6000), np.full(6000, -1.0)]
+    floor = floor[~((floor[:, 0] > 0) & (floor[:, 0] < 1) & (floor[:, 1] > 0) & (floor[:, 1] < 1))]
+    wall = np.c_[rng.uniform(-0.5, 1.5, 6000), np.full(6000, 1.5), rng.uniform(0, 2, 6000)]
+    sensor = np.array([0.5, 0.5, 1.0])
+    a, b = np.vstack([top, floor]) - sensor, np.vstack([top, wall]) - sensor
+    return a, b, sensor
+
+
+def test_normals_turned_to_the_sensors_agree_across_views_where_centroids_disagree():
+    """The table top seen in both views: turned to each view's centroid its normals point down
+    in the first view (the floor below pulls the centroid) and up in the second (the wall above);
+    turned to the sensors (preprocess.normals 'sensor', the frames' origins) up in both."""
+    from cegc_ros.geometry import frame_viewpoints, prepare_pair
+    from cegc_ros.model import ModelConfig as MC
+    a, b, sensor = _table_views()
+    side = {}
+    for normals in ("centroid", "sensor"):
+        ps, pt, norm = prepare_pair(a, b, 512, 1024, np.random.default_rng(0), MC().features(), "grid",
+                                    frame_viewpoints(normals))
+        ups = []
+        for cloud, c in ((ps, norm.c_source), (pt, norm.c_target)):
+            world = cloud.points * norm.scale + c + sensor
+            on_top = (np.abs(world[:, 2]) < 0.01) & (world[:, :2] > 0.1).all(1) & (world[:, :2] < 0.9).all(1)
+            assert on_top.sum() > 20
+            ups.append(float(np.median(cloud.normals[on_top, 2])))
+        side[normals] = ups
+    assert side["centroid"][0] < -0.9 and side["centroid"][1] > 0.9
+    assert side["sensor"][0] > 0.9 and side["sensor"][1] > 0.9
+    with pytest.raises(ValueError, match="normals must be 'sensor' or 'centroid'"):
+        frame_viewpoints("up")
+
+
+def test_the_engine_turns_normals_as_preprocess_normals_says(tiny_checkpoint, monkeypatch):
+    import cegc_ros.engine as engine_mod
+    seen = []
+    real = engine_mod.prepare_pair
+
+    def spy(*args, **kwargs):
+        seen.append(args[7] if len(args) > 7 else kwargs["viewpoints"])
+        return real(*args, **kwargs)
+    monkeypatch.setattr(engine_mod, "prepare_pair", spy)
+    reg = Registrar.from_checkpoint(tiny_checkpoint, device="cpu")
+    a, b, _ = _table_views()
+    reg.register(a, b)                                    # the default: 'sensor'
+    sensor = seen[-1]
+    reg.update(preprocess=PreprocessConfig(normals="centroid"))
+    reg.register(a, b)
+    assert all(v is not None and np.array_equal(v, np.zeros(3)) for v in sensor)
+    assert seen[-1] == (None, None)

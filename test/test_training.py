@@ -675,3 +675,42 @@ def test_a_stage_draws_its_network_points_from_its_own_support_points(monkeypatc
     assert wide["src"].shape == plain["src"].shape == (1, 256, 3)
     # the same seed, other support points: other network points
     assert not torch.equal(wide["src"], plain["src"])
+
+
+def test_sensor_normals_follow_each_cached_pairs_sensors():
+    """data.normals 'sensor': a different-view pair's clouds are each in its sensor's frame (the
+    origins); a copy pair's target is its source moved by T, its sensor at T's translation, and
+    turned there its normals agree with the source's at the same surface points, where turned to
+    the target frame's origin a share of them flip; 7Scenes-protocol copies keep their centroids."""
+    from cegc_ros.data.protocols import Pair
+    from cegc_ros.data.protocols import transform_points
+    src = room(0).astype(np.float64) - [1.5, 1.5, 2.5]        # the sensor above the room's middle
+    T = np.eye(4)
+    a = np.radians(120)
+    T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    T[:3, 3] = T[:3, :3] @ [4.0, 0.0, 4.0]     # the target frame's origin behind a wall, below the floor
+    copy = Pair(src.astype(np.float32), transform_points(T, src).astype(np.float32), T, {"kind": "copy"})
+    views = Pair(copy.source, copy.source, np.eye(4), {"kind": "views"})
+    protocol = Pair(copy.source, copy.source, np.eye(4), {"protocol": "7scenes"})
+    sensor = PairSampler(fragments(2), 0.0, {"with_features": True}, normals="sensor")
+    centroid = PairSampler(fragments(2), 0.0, {"with_features": True})
+    vs, vt = sensor.viewpoints(copy)
+    assert np.array_equal(vs, np.zeros(3)) and np.allclose(vt, T[:3, 3])
+    assert all(np.array_equal(v, np.zeros(3)) for v in sensor.viewpoints(views))
+    assert sensor.viewpoints(protocol) == (None, None) and centroid.viewpoints(copy) == (None, None)
+    with pytest.raises(ValueError, match="normals must be"):
+        PairSampler(fragments(2), 0.0, {"with_features": True}, normals="up")
+
+    def agreement(viewpoints):
+        b = sensor.to_tensors(copy.source, copy.target, T, 256, np.random.default_rng(0), 512, viewpoints)
+        R, t = b["R"][0].numpy(), b["t"][0].numpy()
+        s_in_t = b["src"][0].numpy() @ R.T + t
+        tgt = b["tgt"][0].numpy()
+        j = np.argmin(((s_in_t[:, None] - tgt[None]) ** 2).sum(2), axis=1)
+        near = np.linalg.norm(s_in_t - tgt[j], axis=1) < 0.03
+        dots = ((b["src_n"][0].numpy() @ R.T) * b["tgt_n"][0].numpy()[j]).sum(1)
+        sure = near & (np.abs(dots) > 0.9)
+        assert sure.sum() > 50
+        return float((dots[sure] > 0).mean())
+    assert agreement((vs, vt)) > 0.97
+    assert agreement((np.zeros(3), np.zeros(3))) < 0.9
