@@ -469,3 +469,38 @@ def test_default_input_qos_is_sensor_data():
         assert any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
     finally:
         node.destroy_node()
+
+
+def test_a_cloud_in_a_map_frame_is_counted_and_warned_of(ros):
+    """preprocess.normals 'sensor' and engine.free_space assume sensor frames: a cloud whose
+    frame is named like a map frame ("map", "robot1/odom") is counted and the log names the
+    settings to change; the pair is still registered."""
+    node, probe, _ = ros
+    good = _pts(200)
+    t = 5100 * SEC
+    before = {side: _count(node, f"map_frames.{side}") for side in ("source", "target")}
+    _send_and_wait(node, probe, rh.cloud(good, "robot1/map", t), rh.cloud(good, "b", t))
+    assert _count(node, "map_frames.source") == before["source"] + 1
+    assert _count(node, "map_frames.target") == before["target"]
+    assert probe.by_stamp("pose")[t].header.frame_id == "b"
+    t += SEC
+    _send_and_wait(node, probe, rh.cloud(good, "a", t), rh.cloud(good, "a_map", t))   # not a map frame
+    assert _count(node, "map_frames.source") == before["source"] + 1
+    assert _count(node, "map_frames.target") == before["target"]
+
+
+def test_the_map_frame_warning_names_the_settings_and_follows_preprocess_normals():
+    from types import SimpleNamespace
+
+    from cegc_ros.node.stats import NodeStats
+    from cegc_ros.node.worker import RegistrationWorker
+    logged = []
+    worker = RegistrationWorker(SimpleNamespace(info=SimpleNamespace(min_points=16)), NodeStats(10),
+                                lambda kind, text: logged.append((kind, text)), dict, lambda job, r: None)
+    msg = rh.cloud(_pts(200), "odom", 1)
+    worker.points("source", msg, 10_000, PreprocessConfig())
+    assert [k for k, _ in logged] == ["map_frame.source"]
+    assert "'odom'" in logged[0][1] and "preprocess.normals to 'centroid'" in logged[0][1]
+    assert "engine.free_space to 0" in logged[0][1]
+    worker.points("source", msg, 10_000, PreprocessConfig(normals="centroid"))    # set as told: quiet
+    assert len(logged) == 1 and worker.stats.count("map_frames.source") == 1

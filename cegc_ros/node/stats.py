@@ -24,7 +24,8 @@ REJECT_REASONS = (
 COUNTERS = (
     "messages_in.source", "messages_in.target", "pairs_in", "pairs_out", "pairs_dropped",
     "pairs_rejected", "pairs_done", "unpaired.source", "unpaired.target",
-    "frame_changes.source", "frame_changes.target", "thinned_clouds", "take_errors",
+    "frame_changes.source", "frame_changes.target", "map_frames.source", "map_frames.target",
+    "thinned_clouds", "take_errors",
     "output_errors", "covariance_fallbacks", "engine_restarts", "resets",
 ) + tuple(f"rejected.{r}" for r in REJECT_REASONS)
 #: Input hygiene (cegc_ros.bounding.clean_points): points dropped from each cloud, by reason;

@@ -26,6 +26,10 @@ from cegc_ros.node.support import Mailbox, ThrottledLog, thin
 
 #: How often an idle worker looks for deferred work (a reset, an initial pose), in seconds.
 IDLE_POLL_S = 0.1
+#: Frame names (the last path component, so "robot1/map" too) that say a cloud is not in its
+#: sensor's frame: such clouds are counted (``map_frames.<side>``) and a warning names the
+#: settings that assume sensor frames (preprocess.normals 'sensor', engine.free_space).
+MAP_FRAMES = ("map", "odom", "world", "earth")
 
 
 class RegistrationWorker:
@@ -217,6 +221,12 @@ class RegistrationWorker:
             self._log(f"frame_change.{side}", f"{side} cloud frame changed from {last!r} "
                       f"to {frame!r}; following the new frame")
         self._last_frames[side] = frame
+        if preprocess is not None and preprocess.normals == "sensor" and frame.rsplit("/", 1)[-1] in MAP_FRAMES:
+            self.stats.add(f"map_frames.{side}")
+            self._log(f"map_frame.{side}", f"{side} cloud is in frame {frame!r}, a map frame by its "
+                      f"name: preprocess.normals 'sensor' and engine.free_space assume each cloud "
+                      f"in its sensor's frame; for clouds in a map frame set preprocess.normals "
+                      f"to 'centroid' and engine.free_space to 0")
         try:
             xyz = cloud_to_xyz(msg)  # (N, 3) float32, finite only
         except ValueError as err:
