@@ -504,3 +504,7 @@ def test_the_map_frame_warning_names_the_settings_and_follows_preprocess_normals
     assert "engine.free_space to 0" in logged[0][1]
     worker.points("source", msg, 10_000, PreprocessConfig(normals="centroid"))    # set as told: quiet
     assert len(logged) == 1 and worker.stats.count("map_frames.source") == 1
+    worker.points("cloud", msg, 10_000, PreprocessConfig())                       # sequential mode's side
+    values = worker.stats.values()
+    assert values["map_frames.source"] == "1" and values["map_frames.cloud"] == "1"
+    assert values["map_frames.target"] == "0"

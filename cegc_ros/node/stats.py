@@ -132,8 +132,8 @@ class NodeStats:
             lat = list(self._latency)
             eng = list(self._engine_time)
         values = {k: str(counts.get(k, 0)) for k in COUNTERS}
-        values.update({k: str(v) for k, v in sorted(counts.items())
-                       if k.startswith("dropped.") and k not in values})     # sequential: .cloud
+        values.update({k: str(v) for k, v in sorted(counts.items())       # sequential: .cloud
+                       if k.startswith(("dropped.", "map_frames.")) and k not in values})
         for q, v in zip((50, 90, 99), percentiles_ms(lat)):
             values[f"latency_p{q}_ms"] = f"{v:.1f}"
         values["latency_max_ms"] = f"{max(lat) * 1e3:.1f}" if lat else "nan"
