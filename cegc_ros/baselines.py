@@ -87,6 +87,10 @@ class BaselineConfig:
     min_points: int = 16
     threads: int = 2
     seed: int = 0
+    # Turn each cloud's normals to its frame's origin (its sensor), as the engine's
+    # preprocess.normals 'sensor' does; False leaves Open3D's unoriented normals, as its
+    # pipeline is usually run (docs/accuracy.md measures both)
+    sensor_normals: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -161,6 +165,8 @@ class _Prepared:
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
             pc = pc.voxel_down_sample(voxel)
             pc.estimate_normals(normal)
+            if config.sensor_normals:
+                pc.orient_normals_towards_camera_location(np.zeros(3))
             self.clouds.append(pc)
             if fpfh:
                 self.features.append(reg.compute_fpfh_feature(pc, feat))
@@ -360,7 +366,8 @@ def describe(config: BaselineConfig | None = None) -> list[str]:
     c = config or BaselineConfig()
     voxel = (f"voxel {c.voxel_size:g} m" if c.voxel_size > 0
              else f"voxel {c.voxel_ratio:g} x extent (largest bbox side)")
-    feats = (f"{voxel}; normals r={c.normal_radius_factor:g}v/{c.normal_max_nn}nn; "
+    feats = (f"{voxel}; normals r={c.normal_radius_factor:g}v/{c.normal_max_nn}nn"
+             f"{' turned to the frame origin' if c.sensor_normals else ''}; "
              f"FPFH r={c.fpfh_radius_factor:g}v/{c.fpfh_max_nn}nn")
     return [
         (f"icp: Open3D point-to-plane ICP from identity; {voxel}; max distance "

@@ -92,3 +92,24 @@ def test_unknown_baseline_and_tiny_clouds_fail_clearly():
         baselines.register("nope", np.zeros((50, 3)), np.zeros((50, 3)))
     with pytest.raises(ValueError, match="at least 16"):
         baselines.register("sc2pcr", np.zeros((5, 3)), np.random.default_rng(0).random((100, 3)))
+
+
+def test_sensor_normals_turn_the_peers_normals_to_the_frame_origin():
+    """BaselineConfig.sensor_normals (cegc-eval --sensor-normals): every normal faces the frame's
+    origin, as the engine's preprocess.normals 'sensor'; by default Open3D's unoriented normals
+    face it only by chance, and the peers still register."""
+    import open3d as o3d
+    source, target, T = _corner_pair()
+    source = source - [1.0, 1.0, 3.0]                  # the corner seen from above its middle
+    facing = {}
+    for turned in (False, True):
+        cfg = baselines.BaselineConfig(sensor_normals=turned)
+        prep = baselines._Prepared(o3d, source, source, cfg, fpfh=True)
+        pts, nrm = np.asarray(prep.source.points), np.asarray(prep.source.normals)
+        facing[turned] = float(((-pts * nrm).sum(1) >= 0).mean())
+    assert facing[True] == 1.0 and facing[False] < 0.9
+    assert any("turned to the frame origin" in line
+               for line in baselines.describe(baselines.BaselineConfig(sensor_normals=True)))
+    r = baselines.register("sc2pcr+icp", source, (source @ T[:3, :3].T + T[:3, 3]),
+                           baselines.BaselineConfig(sensor_normals=True))
+    assert r.valid and rotation_error_deg(T[:3, :3], r.T_target_source[:3, :3]) < 2.0

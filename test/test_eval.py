@@ -395,3 +395,11 @@ def test_bag_recall_follows_the_protocol(protocol, definition, tmp_path):
     assert E.main([str(path), "--methods", "sc2pcr", "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["recall_definition"] == definition
+
+
+def test_the_peer_settings_reach_the_baselines():
+    plain = E._baseline_config(E.build_parser().parse_args(["bag", "--out", "o"]))
+    turned = E._baseline_config(E.build_parser().parse_args(
+        ["bag", "--out", "o", "--sensor-normals", "--mutual-filter", "--voxel-ratio", "0.03"]))
+    assert not plain.sensor_normals and not plain.ransac_mutual_filter
+    assert turned.sensor_normals and turned.ransac_mutual_filter and turned.voxel_ratio == 0.03

@@ -121,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "cegc_ros.baselines.BaselineConfig.voxel_ratio)")
     p.add_argument("--mutual-filter", action="store_true",
                    help="baselines: RANSAC with the mutual nearest-feature filter")
+    p.add_argument("--sensor-normals", action="store_true",
+                   help="baselines: turn each cloud's normals to its frame's origin (its sensor), "
+                        "as CEGC's preprocess.normals 'sensor' does (Open3D leaves them unoriented)")
     p.add_argument("--recall-rot", type=float, default=None,
                    help="recall rotation threshold in degrees (default 5; 15 for real pairs)")
     p.add_argument("--recall-trans", type=float, default=None,
@@ -145,7 +148,7 @@ def _thresholds(args: argparse.Namespace, real_fragments: bool) -> metrics.Recal
 
 def _baseline_config(args: argparse.Namespace) -> Any:
     from cegc_ros.baselines import BaselineConfig
-    bcfg = BaselineConfig(ransac_mutual_filter=args.mutual_filter)
+    bcfg = BaselineConfig(ransac_mutual_filter=args.mutual_filter, sensor_normals=args.sensor_normals)
     if args.voxel_ratio is not None:
         if not args.voxel_ratio > 0:
             raise EvalError(f"--voxel-ratio must be > 0, got {args.voxel_ratio}")
