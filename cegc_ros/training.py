@@ -547,8 +547,9 @@ class Trainer:
         reg = Registrar(self.model, self.device, "", {}, PreprocessConfig(), EngineConfig(device=self.device))
         ok, errs, accs, precs, aucs = [], [], [], [], []
         for pair, b in zip(self.val_pairs, self.val_batches):
-            # the engine's normals as the sampler turns them (a copy pair's moved sensor: centroid)
-            sensor = self.cfg.data.normals == "sensor" and pair.info.get("kind") == "views"
+            # the engine's normals as the sampler turns this pair's: 'sensor' where both are turned
+            # to the frames' origins, else the centroids (the engine has no other viewpoint)
+            sensor = all(v is not None and not np.any(v) for v in self.sampler.viewpoints(pair))
             reg.update(preprocess=dataclasses.replace(reg.preprocess, normals="sensor" if sensor else "centroid"))
             res = reg.register(pair.source, pair.target)
             T = pair.T_target_source

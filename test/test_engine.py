@@ -11,7 +11,7 @@ import torch
 
 from cegc_ros.config import EngineConfig, PreprocessConfig
 from cegc_ros.engine import CheckpointError, default_weights, Registrar, load_checkpoint, save_checkpoint
-from cegc_ros.geometry import normalise_pair, subsample
+from cegc_ros.geometry import frame_viewpoints, normalise_pair, prepare_pair, subsample
 from cegc_ros.metrics import rotation_error_deg, translation_error
 from cegc_ros.model import CEGC, ModelConfig
 from cegc_ros.refine import covariance
@@ -533,12 +533,10 @@ def test_normals_turned_to_the_sensors_agree_across_views_where_centroids_disagr
     """The table top seen in both views: turned to each view's centroid its normals point down
     in the first view (the floor below pulls the centroid) and up in the second (the wall above);
     turned to the sensors (preprocess.normals 'sensor', the frames' origins) up in both."""
-    from cegc_ros.geometry import frame_viewpoints, prepare_pair
-    from cegc_ros.model import ModelConfig as MC
     a, b, sensor = _table_views()
     side = {}
     for normals in ("centroid", "sensor"):
-        ps, pt, norm = prepare_pair(a, b, 512, 1024, np.random.default_rng(0), MC().features(), "grid",
+        ps, pt, norm = prepare_pair(a, b, 512, 1024, np.random.default_rng(0), ModelConfig().features(), "grid",
                                     frame_viewpoints(normals))
         ups = []
         for cloud, c in ((ps, norm.c_source), (pt, norm.c_target)):
