@@ -482,6 +482,8 @@ def test_a_cloud_in_a_map_frame_is_counted_and_warned_of(ros):
     _send_and_wait(node, probe, rh.cloud(good, "robot1/map", t), rh.cloud(good, "b", t))
     assert _count(node, "map_frames.source") == before["source"] + 1
     assert _count(node, "map_frames.target") == before["target"]
+    # pairs_done counts before the pose crosses DDS to the probe: wait for the pose itself.
+    assert rh.wait_for(lambda: t in probe.by_stamp("pose"), 5.0)
     assert probe.by_stamp("pose")[t].header.frame_id == "b"
     t += SEC
     _send_and_wait(node, probe, rh.cloud(good, "a", t), rh.cloud(good, "a_map", t))   # not a map frame
