@@ -21,7 +21,8 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/params", glob("params/*.yaml") + glob("params/*.xml")),
-        (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.pt") + glob(f"{PACKAGE}/weights/*.onnx")),
+        (f"share/{PACKAGE}/weights", glob(f"{PACKAGE}/weights/*.pt") + glob(f"{PACKAGE}/weights/*.onnx")
+         + glob(f"{PACKAGE}/weights/*.json")),
     ],
     install_requires=["setuptools"],
     zip_safe=False,

@@ -110,14 +110,19 @@ class EngineConfig:
         "verify_score (the learned features' agreement, or the geometric fitness: share of the "
         "network's source points that land near a target point); 0 ranks by the count alone, "
         "as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
-    verify_score: str = field(default="features", metadata=_meta(
+    verify_score: str = field(default="learned", metadata=_meta(
         "What the verification multiplies each hypothesis' count by: 'fitness' (the share of the "
         "network's source points that land near a target point) or 'features' (over those "
         "points, the sum of the cosine between the learned features of the point and of the "
         "target point it lands on: a wrong pose at low overlap explains as many points as the "
-        "right one, but of places the network tells apart). 'fitness' on the paper's path "
-        "(candidates 'all'). See cegc_ros/refine.py: fitness_agreements.",
-        choices=("fitness", "features")))
+        "right one, but of places the network tells apart) or 'learned' ('features', and in the "
+        "pass with the free-space check a log-linear score of the count, the agreement, the "
+        "fitness and HOCE's confidence of the points each pose lands, fitted on generated "
+        "training pairs and shipped as weights/verification.json; its own free-space weight "
+        "applies there, engine.free_space 0 turns that pass off). 'learned' was chosen on "
+        "synthetic validation pairs (docs/pipeline.md); 'fitness' on the paper's path "
+        "(candidates 'all'). See cegc_ros/verification.py.",
+        choices=("fitness", "features", "learned")))
     explore_seeds: int = field(default=200, metadata=_meta(
         "Seeds of the compatibility estimator drawn at random (seeded) besides its spectral "
         "ones: at low overlap the spectral seeds gather on a wrong consistent cluster. Chosen "

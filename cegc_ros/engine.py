@@ -47,6 +47,7 @@ from .matching import NetworkOutputError  # noqa: E402,F401  (re-exported: the e
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
 from .geometry import LEGACY_FEATURES, box_corner, frame_viewpoints, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
+from .verification import VerificationModel, VerificationModelError  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
 
@@ -190,6 +191,8 @@ class Registrar:
         self.compiled_runs = 0                # forward passes that used the compiled graph
         self._onnx: OnnxNetwork | None = None  # engine.runtime: the ONNX export, when it is used
         self.runtime_note = ""                # why ONNX Runtime is not used ("" when it is)
+        #: engine.verify_score 'learned': the verification model (the shipped one, loaded on first use)
+        self.verifier: VerificationModel | None = None
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str = "auto",
@@ -225,6 +228,8 @@ class Registrar:
                     path, model.cfg, engine.threads)
             if engine.runtime == "onnxruntime" and registrar._onnx is None:
                 raise CheckpointError(f"engine.runtime onnxruntime: {registrar.runtime_note}")
+        if engine.verify_score == "learned":
+            registrar._verification_model()      # a missing or bad file fails here, not mid-stream
         if warm:
             registrar.warm_start()
         return registrar
@@ -349,6 +354,17 @@ class Registrar:
                                          f"registered (checkpoint {self.checkpoint_path})") from None
         return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings, pre.seed)
 
+    def _verification_model(self) -> VerificationModel:
+        """The learned verification's model: :attr:`verifier`, else the shipped one (loaded once);
+        CheckpointError when it cannot be read."""
+        if self.verifier is None:
+            from .paths import VERIFICATION_WEIGHTS, ShippedFileError, shipped_weights
+            try:
+                self.verifier = VerificationModel.load(shipped_weights(VERIFICATION_WEIGHTS))
+            except (ShippedFileError, VerificationModelError) as err:
+                raise CheckpointError(f"engine.verify_score learned: {err}".splitlines()[0]) from err
+        return self.verifier
+
     def _finish(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:
         timings = dict(matched.timings)
         clock = _StageClock(timings)
@@ -361,9 +377,10 @@ class Registrar:
                                          explore_seeds=eng.explore_seeds, free_space=eng.free_space,
                                          sure_fitness=eng.sure_fitness, sure_seeds=eng.sure_seeds,
                                          sure_ambiguity=eng.sure_ambiguity)
-            sim = m.similarity if eng.verify_score == "features" else None
+            sim = m.similarity if eng.verify_score in ("features", "learned") else None
+            model = self._verification_model() if eng.verify_score == "learned" else None
             est = estimator.estimate(eng.estimator, src_m[c[:, 0]], tgt_m[c[:, 1]], m.weights, inlier, compat,
-                                     (src_m, tgt_m), (src, tgt), sim)
+                                     (src_m, tgt_m), (src, tgt), sim, m.source_overlap, model)
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = est.R, est.t
             valid, reason = est.valid, est.reason

@@ -43,7 +43,11 @@ the paper:
    that score is multiplied by ``exp(-free_space x v)``, v the
    share of points each pose puts where the other cloud's sensor saw through
    (cegc_ros/visibility.py): the right low-overlap pose has few inliers and little fitness,
-   but it puts nothing in front of what the other sensor saw. The estimate's ``ambiguity``
+   but it puts nothing in front of what the other sensor saw. With a ``model`` (``engine.verify_score:
+   learned``), that pass ranks by the learned verification of cegc_ros/verification.py
+   instead: a log-linear score of the count, the feature agreement, the fitness and HOCE's
+   confidence of the points each pose lands, fitted on generated training pairs, times its own
+   free-space factor (docs/pipeline.md, "Learned verification"). The estimate's ``ambiguity``
    is the best verification score among the verified poses distinct from the chosen one
    (:func:`ambiguity`) over the chosen one's: near 1, the clouds' geometry does not settle the
    pair (docs/pipeline.md, "Ambiguity").
@@ -69,7 +73,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .refine import fitness_agreements, fitnesses
+from .refine import landing_evidence
+from .verification import VerificationModel, features
 from .visibility import FreeSpace
 
 ESTIMATORS = ("compatibility", "svd")
@@ -309,6 +314,16 @@ def _counts(res: np.ndarray, w: np.ndarray, thr: float) -> np.ndarray:
     return (w[None] * np.clip(1.0 - res / thr, 0.0, None)).sum(1)
 
 
+def hypothesis_counts(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
+                      inlier_distance: float) -> np.ndarray:
+    """Step 5's count of poses R (H, 3, 3), t (H, 3) on correspondences src -> tgt ((K, 3) each)
+    with confidences w (K,), as the estimator counts them -> (H,) (cegc_ros/tools/fit_verification.py)."""
+    w = np.clip(np.nan_to_num(np.asarray(w, np.float64)), 0.0, None)
+    res = _residuals(np.asarray(R, np.float64), np.asarray(t, np.float64), np.asarray(src, np.float64),
+                     np.asarray(tgt, np.float64))
+    return _counts(res, w, float(inlier_distance))
+
+
 def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], hard: np.ndarray,
                      seeds: np.ndarray, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, thr: float,
                      cfg: CompatibilityConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -322,29 +337,38 @@ def _more_hypotheses(have: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: CompatibilityConfig,
             clouds: tuple[np.ndarray, np.ndarray], visibility: tuple[np.ndarray, np.ndarray] | None,
-            known: dict[int, tuple[float, float]],
-            similarity: np.ndarray | None = None) -> tuple[int, np.ndarray, float, np.ndarray]:
+            known: dict[int, tuple[float, float, float, float]],
+            similarity: np.ndarray | None = None, overlap: np.ndarray | None = None,
+            model: VerificationModel | None = None) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
     chosen one's fitness, their verification scores: exact where they decide the choice or
     :func:`ambiguity`, see :func:`_free_space_scores`). Each score is count x fitness, or with
     ``similarity`` count x feature agreement (:func:`cegc_ros.refine.fitness_agreements`); times the
-    free-space factor unless ``visibility`` is None. ``known``: (fitness, fitness or agreement)
-    of hypotheses (by index) an earlier call measured; this call's are added to it."""
+    free-space factor unless ``visibility`` is None. With a ``model``, ``similarity``, the
+    source's HOCE ``overlap`` (Ns,) and ``visibility`` (the pass with the free-space check), the
+    learned score of cegc_ros/verification.py instead, its free-space weight in place of
+    ``cfg.free_space``. ``known``: (fitness, agreement or fitness, overlap landed, overlap
+    precision) of hypotheses (by index) an earlier call measured; this call's are added to it."""
     # distinct poses only (many seeds reach the same consensus set), the best-counted first
     key = np.round(np.concatenate([R.reshape(-1, 9) * 100.0, t * (10.0 / thr)], axis=1)).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
     top = first[np.argsort(-total[first])][:cfg.verify]
     new = np.array([i for i in top if int(i) not in known], dtype=np.int64)
     if len(new):
-        if similarity is None:
-            fits = agree = fitnesses(R[new], t[new], clouds[0], clouds[1], thr)
-        else:
-            fits, agree = fitness_agreements(R[new], t[new], clouds[0], clouds[1], similarity, thr)
-        known.update(zip(new.tolist(), zip(fits.tolist(), agree.tolist())))
-    fit = np.array([known[int(i)][0] for i in top])
-    rank = total[top] * np.array([known[int(i)][1] for i in top])
-    if cfg.free_space > 0 and visibility is not None:
-        rank = _free_space_scores(rank, R[top], t[top], cfg.free_space, FreeSpace(*visibility),
+        o = overlap if overlap is not None else np.ones(len(clouds[0]))
+        evidence = landing_evidence(R[new], t[new], clouds[0], clouds[1], similarity, o, thr)
+        known.update(zip(new.tolist(), zip(*(e.tolist() for e in evidence))))
+    ev = np.array([known[int(i)] for i in top], np.float64).reshape(len(top), 4)
+    fit = ev[:, 0]
+    strength = cfg.free_space
+    if model is not None and similarity is not None and overlap is not None and visibility is not None \
+            and cfg.free_space > 0:
+        rank = model.ranks(features(total[top], ev[:, 1], fit, ev[:, 2], ev[:, 3]))
+        strength = model.free_space_strength
+    else:
+        rank = total[top] * ev[:, 1]
+    if strength > 0 and visibility is not None:
+        rank = _free_space_scores(rank, R[top], t[top], strength, FreeSpace(*visibility),
                                   np.asarray(clouds[0], np.float64), DISTINCT_FACTOR * thr)
     i = int(rank.argmax())
     return int(top[i]), top, float(fit[i]), rank
@@ -423,13 +447,17 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                            cfg: CompatibilityConfig | None = None,
                            clouds: tuple[np.ndarray, np.ndarray] | None = None,
                            visibility: tuple[np.ndarray, np.ndarray] | None = None,
-                           similarity: np.ndarray | None = None) -> Estimate:
+                           similarity: np.ndarray | None = None, overlap: np.ndarray | None = None,
+                           model: VerificationModel | None = None) -> Estimate:
     """Pose from correspondences src[i] -> tgt[i] ((K, 3) each) with confidences w (K,) >= 0.
     ``clouds``: the (Ns, 3) source and (Nt, 3) target point sets the correspondences were drawn
     from, for the geometric verification of step 5 (None: the count alone, as SC2-PCR);
     ``visibility``: the two clouds in their sensors' frames for its free-space check (None: no
     check); ``similarity``: (Ns, Nt) descriptor similarity (cosines) of the clouds' points: the
-    verification weighs each hypothesis by its feature agreement instead of its fitness."""
+    verification weighs each hypothesis by its feature agreement instead of its fitness;
+    ``overlap`` (Ns,): HOCE's confidence of the source points and ``model``: the learned
+    verification (cegc_ros/verification.py) of the pass with the free-space check, which needs
+    both and ``similarity``."""
     cfg = cfg or CompatibilityConfig()
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
@@ -473,12 +501,13 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     rivalry = 0.0
     if verifying:
         explore = cfg.explore_seeds > 0
-        known: dict[int, tuple[float, float]] = {}
+        known: dict[int, tuple[float, float, float, float]] = {}
         source = np.asarray(clouds[0], np.float64)
 
         def verified(vis: tuple[np.ndarray, np.ndarray] | None) -> tuple[int, np.ndarray, float, float]:
             """_verify's choice, the verified ones and the choice's fitness, with its ambiguity."""
-            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known, similarity)
+            best, top, fit, rank = _verify(R, t, total, thr, cfg, clouds, vis, known, similarity, overlap,
+                                           model)
             return best, top, fit, ambiguity(R[top], t[top], rank, source, DISTINCT_FACTOR * thr)
 
         def unsure(fit: float, rivalry: float) -> bool:
@@ -544,11 +573,13 @@ def estimate(name: str, src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_
              cfg: CompatibilityConfig | None = None,
              clouds: tuple[np.ndarray, np.ndarray] | None = None,
              visibility: tuple[np.ndarray, np.ndarray] | None = None,
-             similarity: np.ndarray | None = None) -> Estimate:
-    """Dispatch by estimator name (``ESTIMATORS``); ``clouds``, ``visibility`` and
-    ``similarity`` only matter to ``compatibility``."""
+             similarity: np.ndarray | None = None, overlap: np.ndarray | None = None,
+             model: VerificationModel | None = None) -> Estimate:
+    """Dispatch by estimator name (``ESTIMATORS``); ``clouds``, ``visibility``, ``similarity``,
+    ``overlap`` and ``model`` only matter to ``compatibility``."""
     if name == "compatibility":
-        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility, similarity)
+        return estimate_compatibility(src, tgt, w, inlier_distance, cfg, clouds, visibility, similarity,
+                                      overlap, model)
     if name == "svd":
         return estimate_svd(src, tgt, w, inlier_distance, cfg)
     raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")

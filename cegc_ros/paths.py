@@ -25,7 +25,9 @@ from pathlib import Path
 PACKAGE = "cegc_ros"
 #: The weights the engine loads by default (cegc_ros.engine.default_weights).
 ENGINE_WEIGHTS = "cegc_views.pt"
-WEIGHT_NAMES = (ENGINE_WEIGHTS,)
+#: The learned verification's weights (cegc_ros.verification; engine.verify_score 'learned').
+VERIFICATION_WEIGHTS = "verification.json"
+WEIGHT_NAMES = (ENGINE_WEIGHTS, VERIFICATION_WEIGHTS)
 #: Fast DDS profile for processes that publish multi-megabyte clouds (heartbeat every 0.1 s).
 FASTDDS_PROFILE = "fastdds_large_clouds.xml"
 #: The variable Fast DDS 2.x (ROS 2 Jazzy) reads its profiles file from.

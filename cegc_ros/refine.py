@@ -71,6 +71,28 @@ def fitness_agreements(R: np.ndarray, t: np.ndarray, source: np.ndarray, target:
     return near.mean(1), np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
 
 
+def landing_evidence(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray,
+                     similarity: np.ndarray | None, source_overlap: np.ndarray, distance: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fitness_agreements` of H poses (the agreement is the fitness when ``similarity`` is
+    None) and, from the same search, what HOCE says of the source points each pose lands within
+    ``distance`` of a target point: the share of the source's overlap confidence
+    (``source_overlap`` (Ns,) in [0, 1]) on them, and their mean confidence (0 when none lands)
+    -> four (H,) arrays, the evidence of cegc_ros/verification.py."""
+    near, j = _nearest(R, t, source, target, distance)
+    fit = near.mean(1)
+    if similarity is None:
+        agree = fit
+    else:
+        cos = np.asarray(similarity)[np.arange(near.shape[1])[None], j]                 # (H, Ns)
+        agree = np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
+    o = np.asarray(source_overlap, np.float64)
+    on = near @ o                                                                        # (H,)
+    landed = on / max(float(o.sum()), 1e-12)
+    precision = np.divide(on, near.sum(1), out=np.zeros(len(near)), where=near.any(1))
+    return fit, agree, landed, precision
+
+
 def _nearest(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray, distance: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """(H, Ns) whether each source point lands within ``distance`` of a target point under each

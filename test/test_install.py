@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 PY = f"python{sys.version_info.major}.{sys.version_info.minor}"
 PARAMS = sorted(p.name for p in (REPO / "params").glob("*.yaml"))
 ENTRY_POINTS = sorted(entry_points.SCRIPTS)
-WEIGHTS = sorted(p.name for p in (REPO / "cegc_ros" / "weights").glob("*.pt"))
+WEIGHTS = sorted(p.name for p in (REPO / "cegc_ros" / "weights").glob("*") if p.suffix in (".pt", ".json"))
 
 
 def copy_sources(dest: Path) -> Path:
@@ -143,7 +143,8 @@ def test_colcon_route_builds_a_runnable_ament_python_package(tmp_path):
     assert "register_node" in proc.stdout
     assert "Traceback" not in proc.stderr
     # Every tool the README names is where `ros2 run cegc_ros <tool>` looks, and the network's
-    # ONNX export ships beside the weights.
+    # ONNX export and the learned verification's weights ship beside the weights.
     for tool in ("cegc-make-bag", "cegc-replay", "cegc-register", "cegc-eval"):
         assert os.access(prefix / "lib" / "cegc_ros" / tool, os.X_OK), tool
     assert (prefix / "share" / "cegc_ros" / "weights" / "cegc_views.onnx").is_file()
+    assert (prefix / "share" / "cegc_ros" / "weights" / "verification.json").is_file()
