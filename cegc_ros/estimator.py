@@ -47,7 +47,7 @@ the paper:
    learned``), that pass ranks by the learned verification of cegc_ros/verification.py
    instead: a log-linear score of the count, the feature agreement, the fitness and HOCE's
    confidence of the points each pose lands, fitted on generated training pairs, times its own
-   free-space factor (docs/pipeline.md, "Learned verification"). The estimate's ``ambiguity``
+   free-space factor (docs/accuracy.md, "Learned verification"). The estimate's ``ambiguity``
    is the best verification score among the verified poses distinct from the chosen one
    (:func:`ambiguity`) over the chosen one's: near 1, the clouds' geometry does not settle the
    pair (docs/pipeline.md, "Ambiguity").

@@ -15,10 +15,10 @@ check (:func:`cegc_ros.estimator._free_space_scores`) still checks only the pose
 matter.
 
 Why: count x agreement x exp(-10 v) chose a right pose, before ICP, on 257 of the 674
-low-overlap validation evaluations that had one on 347; the fitted weights (agreement and free
-space weigh far more than the count, and HOCE's overlap confidence of the points a pose lands
-tells where the network sees overlap) chose one on ~270 (docs/pipeline.md, "Learned
-verification"). The model is a conditional logit (McFadden 1973): for each evaluation, the
+low-overlap validation evaluations that had one on 347; the fitted weights (the agreement
+weighs ~13x the count, and HOCE's overlap confidence of the points a pose lands tells where
+the network sees overlap) chose one on 266-272; end to end 43 won / 17 lost at fresh seeds
+(docs/accuracy.md, "Learned verification"). The model is a conditional logit (McFadden 1973): for each evaluation, the
 softmax of w . x over its verified hypotheses, fitted to put its mass on the right ones
 (:func:`fit`; ``python -m cegc_ros.tools.fit_verification`` writes the shipped file).
 

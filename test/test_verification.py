@@ -85,7 +85,7 @@ def test_model_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path):
 def test_the_shipped_model_was_fitted_on_training_pairs_and_weighs_what_was_measured():
     """The shipped weights/verification.json loads; it was fitted on a training cache (never
     validation or real pairs) and chose more right hypotheses there than the score it replaces;
-    agreement and free space weigh in as measured (docs/pipeline.md, "Learned verification")."""
+    agreement and free space weigh in as measured (docs/accuracy.md, "Learned verification")."""
     from cegc_ros.paths import VERIFICATION_WEIGHTS, shipped_weights
     model = V.VerificationModel.load(shipped_weights(VERIFICATION_WEIGHTS))
     assert "train" in model.meta["cache"] and model.meta["evaluations"] >= 500
@@ -225,3 +225,6 @@ def test_fit_verification_tool_records_evidence_and_fails_in_one_line(val_cache,
     assert FV.main([str(tmp_path), "--out", str(tmp_path / "m.json")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("fit_verification: ") and len(err.splitlines()) == 1
+    assert FV.main([str(val_cache), "--checkpoint", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "m.json")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "nope.pt" in err and len(err.splitlines()) == 1 and not (tmp_path / "m.json").exists()

@@ -3,7 +3,8 @@
     python -m cegc_ros.tools.fit_verification .cache/pairs/train_v --pairs 1000 \
         --out cegc_ros/weights/verification.json
 
-The engine (shipped weights, node defaults but ``engine.verify_score: features``) registers
+The engine (the shipped weights or ``--checkpoint``, node defaults but
+``engine.verify_score: features``) registers
 ``--pairs`` evenly spaced Kinect different-view pairs of a pair cache, ``--low-share`` of them
 under 30% overlap (where the choice matters), at one sampling seed. For every hypothesis its
 verification ranked it records the evidence of :data:`cegc_ros.verification.FEATURES`, the
@@ -78,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=1000)
     ap.add_argument("--low-share", type=float, default=0.7, metavar="X",
                     help="share of the pairs under 30%% overlap (default 0.7)")
+    ap.add_argument("--checkpoint", default="", help="the network's weights (default: the shipped ones)")
     ap.add_argument("--seed", type=int, default=0, help="preprocess.seed of the registrations")
     ap.add_argument("--l2", type=float, default=1e-3, help="L2 penalty on the standardised weights")
     ap.add_argument("--out", type=Path, required=True)
@@ -91,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--pairs must be >= 1 and --low-share in [0, 1]")
         pairs = training_pairs(args.cache, args.pairs, args.low_share)
         eng = EngineConfig(verify_score="features")
-        registrar = Registrar.from_checkpoint(None, device="cpu", engine=eng,
+        registrar = Registrar.from_checkpoint(args.checkpoint or None, device="cpu", engine=eng,
                                               preprocess=PreprocessConfig(seed=args.seed))
         parts = [evidence(registrar, p) for p in pairs]
         x = np.concatenate([p["x"] for p in parts])
