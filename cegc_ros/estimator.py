@@ -343,7 +343,7 @@ def _verify(R: np.ndarray, t: np.ndarray, total: np.ndarray, thr: float, cfg: Co
     """Step 5's verification: (the chosen hypothesis, the verified ones best-counted first, the
     chosen one's fitness, their verification scores: exact where they decide the choice or
     :func:`ambiguity`, see :func:`_free_space_scores`). Each score is count x fitness, or with
-    ``similarity`` count x feature agreement (:func:`cegc_ros.refine.fitness_agreements`); times the
+    ``similarity`` count x feature agreement (:func:`cegc_ros.refine.landing_evidence`); times the
     free-space factor unless ``visibility`` is None. With a ``model``, ``similarity``, the
     source's HOCE ``overlap`` (Ns,) and ``visibility`` (the pass with the free-space check), the
     learned score of cegc_ros/verification.py instead, its free-space weight in place of

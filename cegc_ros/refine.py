@@ -56,29 +56,21 @@ def fitnesses(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarr
     return near.mean(1)
 
 
-def fitness_agreements(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       similarity: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`fitnesses` of H poses and, from the same search, their feature agreement: for
-    each source point the pose puts within ``distance`` of its nearest target point, the two
-    points' descriptor similarity (``similarity`` (Ns, Nt): cosines), summed and floored at 0
-    -> (H,), (H,).
-
-    A fitness that weighs each point the pose explains by whether the network sees the same
-    place there: at low overlap a wrong pose (a floor laid on the other floor) can explain as
-    many points as the right one, but of places the features tell apart (docs/pipeline.md)."""
-    near, j = _nearest(R, t, source, target, distance)
-    cos = np.asarray(similarity)[np.arange(near.shape[1])[None], j]                     # (H, Ns)
-    return near.mean(1), np.clip(np.where(near, cos, 0.0).sum(1, dtype=np.float64), 0.0, None)
-
-
 def landing_evidence(R: np.ndarray, t: np.ndarray, source: np.ndarray, target: np.ndarray,
                      similarity: np.ndarray | None, source_overlap: np.ndarray, distance: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`fitness_agreements` of H poses (the agreement is the fitness when ``similarity`` is
-    None) and, from the same search, what HOCE says of the source points each pose lands within
-    ``distance`` of a target point: the share of the source's overlap confidence
-    (``source_overlap`` (Ns,) in [0, 1]) on them, and their mean confidence (0 when none lands)
-    -> four (H,) arrays, the evidence of cegc_ros/verification.py."""
+    """The evidence of H poses R (H, 3, 3), t (H, 3) from one search of the source points
+    (Ns, 3) landed on the target points (Nt, 3) -> four (H,) arrays (cegc_ros/verification.py):
+
+    - fitness (:func:`fitnesses`);
+    - feature agreement: for each source point the pose puts within ``distance`` of its nearest
+      target point, the two points' descriptor similarity (``similarity`` (Ns, Nt): cosines),
+      summed and floored at 0 (the fitness when ``similarity`` is None). A fitness that weighs
+      each point the pose explains by whether the network sees the same place there: at low
+      overlap a wrong pose (a floor laid on the other floor) can explain as many points as the
+      right one, but of places the features tell apart (docs/pipeline.md);
+    - what HOCE says of the landed points: the share of the source's overlap confidence
+      (``source_overlap`` (Ns,) in [0, 1]) on them, and their mean confidence (0 when none lands)."""
     near, j = _nearest(R, t, source, target, distance)
     fit = near.mean(1)
     if similarity is None:

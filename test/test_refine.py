@@ -110,12 +110,15 @@ def test_fitnesses_count_exactly_the_points_within_the_distance():
 
 
 def test_feature_agreement_sums_the_cosines_of_the_points_a_pose_brings_together():
-    """refine.fitness_agreements against a loop over the points: for each source point within
+    """refine.landing_evidence's agreement against a loop over the points: for each source point within
     the distance of its nearest target point under the pose, that pair's cosine (from the
     similarity matrix), summed and floored at 0 per pose; its fitness is refine.fitnesses'."""
     from scipy.spatial import cKDTree
 
-    from cegc_ros.refine import fitness_agreements, fitnesses
+    from cegc_ros.refine import fitnesses, landing_evidence
+
+    def fitness_agreements(R, t, source, target, similarity, distance):
+        return landing_evidence(R, t, source, target, similarity, np.ones(len(source)), distance)[:2]
     rng = np.random.default_rng(5)
     src, tgt = rng.uniform(0, 1, (300, 3)), rng.uniform(0, 1, (250, 3))
     ds, dt = rng.normal(size=(300, 8)), rng.normal(size=(250, 8))
