@@ -83,6 +83,11 @@ class EngineConfig:
         dynamic=False))
     device: str = field(default="auto", metadata=_meta(
         "Torch device: 'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.", dynamic=False))
+    verification: str = field(default="", metadata=_meta(
+        "Path of a learned verification model (.json, python -m cegc_ros.tools.fit_verification) "
+        "for verify_score 'learned'; empty uses the one shipped with the package, fitted to the "
+        "shipped weights (refit it for other weights). See cegc_ros/verification.py.",
+        dynamic=False))
     candidates: str = field(default="both", metadata=_meta(
         "Candidate partners scored by CAMS for each source point: 'learned' (nearest in the "
         "network's feature space), 'fpfh' (nearest in FPFH space), 'both', or 'all' (the "

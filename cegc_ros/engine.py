@@ -240,10 +240,11 @@ class Registrar:
             if preprocess is not None:
                 self.preprocess = copy.deepcopy(preprocess)
             if engine is not None:
-                keep = (self.engine.checkpoint, self.engine.device, self.engine.compile, self.engine.runtime)
+                keep = (self.engine.checkpoint, self.engine.device, self.engine.compile, self.engine.runtime,
+                        self.engine.verification)
                 self.engine = copy.deepcopy(engine)
                 (self.engine.checkpoint, self.engine.device, self.engine.compile,
-                 self.engine.runtime) = keep
+                 self.engine.runtime, self.engine.verification) = keep
 
     def warm_start(self) -> float:
         """Register a tiny synthetic pair (two views of a box corner, 64 network points, eager):
@@ -355,12 +356,14 @@ class Registrar:
         return Matched(bounded, src_m, tgt_m, m, spacing, norm.scale, runtime, timings, pre.seed)
 
     def _verification_model(self) -> VerificationModel:
-        """The learned verification's model: :attr:`verifier`, else the shipped one (loaded once);
-        CheckpointError when it cannot be read."""
+        """The learned verification's model: :attr:`verifier`, else the file of
+        ``engine.verification`` or the shipped one (loaded once); CheckpointError when it cannot
+        be read."""
         if self.verifier is None:
             from .paths import VERIFICATION_WEIGHTS, ShippedFileError, shipped_weights
             try:
-                self.verifier = VerificationModel.load(shipped_weights(VERIFICATION_WEIGHTS))
+                path = self.engine.verification or shipped_weights(VERIFICATION_WEIGHTS)
+                self.verifier = VerificationModel.load(path)
             except (ShippedFileError, VerificationModelError) as err:
                 raise CheckpointError(f"engine.verify_score learned: {err}".splitlines()[0]) from err
         return self.verifier

@@ -193,8 +193,19 @@ def test_the_engine_registers_with_the_learned_verification_and_names_a_bad_mode
     assert calls and all(n >= 1 for n in calls)
     assert res.valid and rotation_error_deg(pair.T_target_source[:3, :3], res.T_target_source[:3, :3]) < 2.0
     assert np.linalg.norm(res.T_target_source[:3, 3] - pair.T_target_source[:3, 3]) < 0.01
+    # engine.verification: a model of one's own (here the shipped one with another free-space
+    # weight) is the one used; update() keeps it (read-only, like the checkpoint)
+    own = tmp_path / "own.json"
+    V.VerificationModel(shipped.weights, 3.0, {"cache": "mine"}).save(own)
+    mine = engine.Registrar.from_checkpoint(None, device="cpu", engine=EngineConfig(verification=str(own)),
+                                            warm=False)
+    assert mine.verifier is not None and mine.verifier.free_space == 3.0 and mine.verifier.meta == {"cache": "mine"}
+    mine.update(engine=EngineConfig())
+    assert mine.engine.verification == str(own)
     bad = tmp_path / "verification.json"
     bad.write_text('{"format": 1, "weights": {}, "free_space": 1}')
+    with pytest.raises(engine.CheckpointError, match="verification model .*verification.json: weights must name"):
+        engine.Registrar.from_checkpoint(None, device="cpu", engine=EngineConfig(verification=str(bad)), warm=False)
     weights = engine.default_weights()
     monkeypatch.setattr(paths, "shipped_weights", lambda name: bad)
     with pytest.raises(engine.CheckpointError, match="engine.verify_score learned: verification model .*: weights must name") as err:

@@ -12,7 +12,8 @@ chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preproces
 ``--points N`` thins every cloud to N points first (a sparser sensor);
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 The default ``engine.verify_score: learned`` uses weights fitted to the shipped network; compare
-other networks with ``--set engine.verify_score=features`` (docs/training.md).
+other networks with ``--set engine.verify_score=features``, or give one a model fitted to it with
+``--set engine.verification=FILE`` (docs/training.md).
 ``--seeds 0,1`` runs each checkpoint at each sampling seed and pools its recall; from the second
 method on a line says how many evaluations it won and lost against the first, with a sign test.
 A checkpoint without its ONNX export (``python -m cegc_ros.tools.export_onnx CKPT``) runs
