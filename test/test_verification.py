@@ -220,7 +220,7 @@ def test_fit_verification_tool_records_evidence_and_fails_in_one_line(val_cache,
     from cegc_ros.engine import Registrar
     from cegc_ros.metrics import within
     from cegc_ros.tools import fit_verification as FV
-    pairs = FV.training_pairs(val_cache, 2, 0.5)
+    pairs = list(FV.training_pairs(val_cache, 2, 0.5))
     assert 1 <= len(pairs) <= 2
     reg = Registrar.from_checkpoint(None, device="cpu")
     ev = FV.evidence(reg, pairs[0])

@@ -23,14 +23,16 @@ import dataclasses
 import datetime
 import sys
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
 
-def training_pairs(cache_dir: Path, n: int, low_share: float) -> list[Any]:
+def training_pairs(cache_dir: Path, n: int, low_share: float) -> Iterator[Any]:
     """``n`` Kinect different-view pairs of a pair cache, ``low_share`` of them under 30% overlap,
-    each part evenly spread over the cache; ValueError when it holds none."""
+    each part evenly spread over the cache, read one at a time (memory stays one pair's);
+    ValueError when it holds none."""
     from cegc_ros.data.pair_cache import PairCache
     cache = PairCache(cache_dir, kinds=("views",), sensors=("kinect",))
     if len(cache) == 0:
@@ -40,7 +42,7 @@ def training_pairs(cache_dir: Path, n: int, low_share: float) -> list[Any]:
         idx = np.flatnonzero(part)
         if len(idx) and k > 0:
             picked += idx[np.linspace(0, len(idx) - 1, min(k, len(idx))).astype(int)].tolist()
-    return [cache[int(i)] for i in picked]
+    return (cache[int(i)] for i in picked)
 
 
 def evidence(registrar: Any, pair: Any) -> dict[str, np.ndarray]:
@@ -91,11 +93,13 @@ def main(argv: list[str] | None = None) -> int:
         from cegc_ros.engine import CheckpointError, Registrar
         if not 0.0 <= args.low_share <= 1.0 or args.pairs < 1:
             raise ValueError("--pairs must be >= 1 and --low-share in [0, 1]")
-        pairs = training_pairs(args.cache, args.pairs, args.low_share)
         eng = EngineConfig(verify_score="features")
         registrar = Registrar.from_checkpoint(args.checkpoint or None, device="cpu", engine=eng,
                                               preprocess=PreprocessConfig(seed=args.seed))
-        parts = [evidence(registrar, p) for p in pairs]
+        parts = [evidence(registrar, p) for p in training_pairs(args.cache, args.pairs, args.low_share)]
+        if not parts:
+            raise ValueError(f"{args.cache}: no pairs on the side of 30% overlap that --low-share "
+                             f"{args.low_share:g} asks for")
         x = np.concatenate([p["x"] for p in parts])
         v = np.concatenate([p["violations"] for p in parts])
         right = np.concatenate([p["right"] for p in parts])
@@ -111,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
                  "chosen_right_fitted": chosen_right(after, group, right)}
         model = dataclasses.replace(model, meta={
             "fitted": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "cache": str(args.cache), "pairs": len(pairs), "low_share": args.low_share, "seed": args.seed,
+            "cache": str(args.cache), "pairs": len(parts), "low_share": args.low_share, "seed": args.seed,
             "l2": args.l2, "weights": Path(registrar.checkpoint_path).name, **stats,
             "command": "python -m cegc_ros.tools.fit_verification " + " ".join(sys.argv[1:] if argv is None else argv)})
         args.out.parent.mkdir(parents=True, exist_ok=True)
