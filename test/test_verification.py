@@ -169,8 +169,9 @@ def test_hypothesis_counts_are_the_estimators():
 
 def test_the_engine_registers_with_the_learned_verification_and_names_a_bad_model(monkeypatch, tmp_path):
     """A held-out synthetic 7Scenes pair (as test_engine registers it), the exploring pass forced
-    (engine.sure_fitness above 1, engine.sure_ambiguity -1): the shipped model ranks the hypotheses and the pose is right;
-    a bad model file fails at start-up in one line naming the setting."""
+    (engine.sure_fitness above 1, engine.sure_ambiguity -1): the shipped model ranks the
+    hypotheses and the pose is right; engine.verification loads another model; a bad model file
+    fails at start-up in one line naming the setting."""
     from cegc_ros import engine, paths
     from cegc_ros.config import EngineConfig
     from cegc_ros.data.protocols import make_pair
@@ -208,7 +209,8 @@ def test_the_engine_registers_with_the_learned_verification_and_names_a_bad_mode
         engine.Registrar.from_checkpoint(None, device="cpu", engine=EngineConfig(verification=str(bad)), warm=False)
     weights = engine.default_weights()
     monkeypatch.setattr(paths, "shipped_weights", lambda name: bad)
-    with pytest.raises(engine.CheckpointError, match="engine.verify_score learned: verification model .*: weights must name") as err:
+    with pytest.raises(engine.CheckpointError,
+                       match="engine.verify_score learned: verification model .*: weights must name") as err:
         engine.Registrar.from_checkpoint(weights, device="cpu", engine=EngineConfig(verify_score="learned"),
                                          warm=False)
     assert "\n" not in str(err.value)
