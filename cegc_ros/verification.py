@@ -79,6 +79,12 @@ class VerificationModel:
         s = np.asarray(x, np.float64) @ np.array([self.weights[f] for f in FEATURES])
         return np.exp(self.scale * (s - s.max()))
 
+    def log_scores(self, x: np.ndarray, violations: np.ndarray) -> np.ndarray:
+        """(H, len(FEATURES)) and (H,) free-space violations -> (H,) the logarithm of what the
+        estimator ranks by (:meth:`ranks` x exp(-:attr:`free_space_strength` x violations)),
+        every hypothesis scored in full."""
+        return np.log(self.ranks(x)) - self.free_space_strength * np.asarray(violations, np.float64)
+
     @property
     def free_space_strength(self) -> float:
         """The factor's strength on the scale of :meth:`ranks`: exp(-strength x violations)."""

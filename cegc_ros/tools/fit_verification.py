@@ -106,13 +106,13 @@ def main(argv: list[str] | None = None) -> int:
         group = np.repeat(np.arange(len(parts)), [len(p["right"]) for p in parts])
         weights, free = verification.fit(x, v, group, right, args.l2)
         model = verification.VerificationModel(weights, free)
-        before = x[:, verification.FEATURES.index("log_count")] + x[:, verification.FEATURES.index("log_agreement")] \
-            - eng.free_space * v
-        after = np.log(model.ranks(x)) - model.free_space_strength * v
+        # the score it replaces, count x agreement x exp(-engine.free_space x v), as a model
+        plain = verification.VerificationModel({f: float(f in ("log_count", "log_agreement"))
+                                                for f in verification.FEATURES}, eng.free_space)
         n_right = int((np.bincount(group, right, len(parts)) > 0).sum())
         stats = {"evaluations": len(parts), "with_a_right_hypothesis": n_right,
-                 "chosen_right_before": chosen_right(before, group, right),
-                 "chosen_right_fitted": chosen_right(after, group, right)}
+                 "chosen_right_before": chosen_right(plain.log_scores(x, v), group, right),
+                 "chosen_right_fitted": chosen_right(model.log_scores(x, v), group, right)}
         model = dataclasses.replace(model, meta={
             "fitted": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "cache": str(args.cache), "pairs": len(parts), "low_share": args.low_share, "seed": args.seed,
