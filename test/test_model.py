@@ -233,14 +233,19 @@ def test_overlap_labels_from_ground_truth():
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="variant"):
         ModelConfig(variant="nope")
+    with pytest.raises(ValueError, match="cams_centre"):
+        ModelConfig(cams_centre="middle")
+    with pytest.raises(ValueError, match="cams_centre_power"):
+        ModelConfig(cams_centre_power=0.0)
     with pytest.raises(ValueError, match="overlap_ratio"):
         ModelConfig(overlap_ratio=0.0)
     with pytest.raises(ValueError, match="dilation"):
         ModelConfig(dilation=0)
     # checkpoints written before the field existed load with the paper's neighbourhood
     old = ModelConfig().to_dict()
-    del old["dilation"]
+    del old["dilation"], old["cams_centre"], old["cams_centre_power"]
     assert ModelConfig.from_dict(old).dilation == 1
+    assert ModelConfig.from_dict(old).cams_centre == "own"
     assert ModelConfig.from_dict(ModelConfig().to_dict()) == ModelConfig()
 
 
@@ -256,12 +261,12 @@ def test_cpu_and_cuda_agree():
     assert torch.allclose(a.R, b.R.cpu(), atol=1e-3)
 
 
-@pytest.mark.parametrize("variant", ["ri", "paper"])
-def test_candidate_scores_are_the_all_pairs_scores_of_those_pairs_up_to_the_context(variant):
+@pytest.mark.parametrize("variant,centre", [("ri", "own"), ("paper", "own"), ("ri", "overlap")])
+def test_candidate_scores_are_the_all_pairs_scores_of_those_pairs_up_to_the_context(variant, centre):
     """score_candidates runs CAMS on N x k pairs: with every target point a candidate, the pair
     embedding equals forward()'s all-pairs one, so the scores agree exactly."""
     torch.manual_seed(0)
-    cfg = small_cfg(variant=variant, overlap_ratio=1.0)
+    cfg = small_cfg(variant=variant, overlap_ratio=1.0, cams_centre=centre)
     model = CEGC(cfg).eval()
     args = inputs(40, 40)
     with torch.no_grad():
@@ -354,3 +359,63 @@ def test_dilated_agnn_gathers_every_dth_of_the_k_d_nearest_in_its_later_layers(v
         assert torch.allclose(got, by_hand, atol=1e-6)
         assert torch.equal(plain.encode(src, nrm, desc), plain.agnn(edges, idx, feats))
         assert (got - plain.encode(src, nrm, desc)).abs().max() > 1e-3
+
+
+def test_cams_overlap_centre_is_hoces_sharpened_centroid():
+    """cams_centre "overlap": rho is each point's distance from the centroid weighted by
+    sigmoid(HOCE logit) ** cams_centre_power; equal logits give the cloud's own centroid."""
+    from cegc_ros.model.cams import CAMS
+    g = torch.Generator().manual_seed(3)
+    o = torch.rand(2, 40, 3, generator=g) * 4.0
+    logits = torch.randn(2, 40, generator=g) * 2.0
+    cams = CAMS(16, 8, "ri", 64, centre="overlap", centre_power=4.0)
+    w = torch.sigmoid(logits.double()) ** 4
+    c = (w[..., None] * o.double()).sum(1, keepdim=True) / w.sum(1)[:, None, None]
+    expect = (o.double() - c).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(cams._radius(o, logits).double(), expect, atol=1e-5, rtol=1e-5)
+    rx, ry = cams._spatial(o, o[:, :30], torch.zeros(2, 40), torch.zeros(2, 30))
+    own = CAMS(16, 8, "ri", 64)._spatial(o, o[:, :30])
+    torch.testing.assert_close(rx, own[0])
+    torch.testing.assert_close(ry, own[1])
+    # a confident point far from the rest pulls the centre to itself at a high power
+    sharp = CAMS(16, 8, "ri", 64, centre="overlap", centre_power=64.0)
+    peak = torch.full((2, 40), -4.0)
+    peak[:, 7] = 6.0
+    assert sharp._radius(o, peak)[:, 7].abs().max() < 1e-3
+    # no gradient reaches HOCE's logits through the centre
+    lg, og = logits.clone().requires_grad_(True), o.clone().requires_grad_(True)
+    cams._radius(og, lg).sum().backward()
+    assert lg.grad is None and og.grad is not None
+    with pytest.raises(ValueError, match="overlap logits"):
+        cams._spatial(o, o)
+
+
+def test_overlap_centre_network_is_invariant_to_each_clouds_pose():
+    """The "ri" network with cams_centre "overlap" reads only rigid-invariant inputs: moving the
+    source cloud (its normals turned with it) leaves every candidate and score as they were."""
+    torch.manual_seed(0)
+    model = CEGC(small_cfg(cams_centre="overlap")).eval()
+    src, tgt, ns, nt, ds, dt = inputs(120, 100, seed=5)
+    R = torch.tensor(random_rotation(np.random.default_rng(2)), dtype=torch.float32)
+    moved = src @ R.T + torch.tensor([0.7, -1.2, 0.4])
+    with torch.no_grad():
+        a = model.score_candidates(src, tgt, ns, nt, ds, dt, k_learned=4)
+        b = model.score_candidates(moved, tgt, ns @ R.T, nt, ds, dt, k_learned=4)
+    assert torch.equal(a.candidates, b.candidates)
+    torch.testing.assert_close(a.scores, b.scores, atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(a.src_overlap_logits, b.src_overlap_logits, atol=1e-3, rtol=1e-3)
+
+
+def test_overlap_centre_trains():
+    """Gradients reach every branch with cams_centre "overlap" and stay finite."""
+    torch.manual_seed(0)
+    model = CEGC(small_cfg(cams_centre="overlap")).train()
+    src, tgt, ns, nt, ds, dt = inputs(96, 80)
+    out = model(src, tgt, ns, nt, ds, dt)
+    loss, parts = cegc_loss(out, src, tgt, torch.eye(3)[None], torch.zeros(1, 3), LossConfig(),
+                            model.cfg.match_temperature)
+    loss.backward()
+    assert np.isfinite(parts["loss"])
+    for name in ["hoce", "cams"]:
+        grads = [p.grad for n, p in model.named_parameters() if n.startswith(name) and p.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads)

@@ -136,3 +136,17 @@ def test_export_errors_are_one_line(tmp_path, capsys):
     assert export_main([str(tmp_path / "missing.pt")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("export_onnx: checkpoint ") and "file not found" in err and "\n" not in err
+
+
+def test_an_overlap_centred_network_exports_with_torchs_outputs(tmp_path):
+    """ModelConfig.cams_centre "overlap" (arm 19's CAMS centre, from HOCE's logits) exports: the
+    ONNX graph gives torch's overlap logits and scores within the stated tolerance."""
+    pytest.importorskip("onnx")
+    state = torch.load(default_weights(), map_location="cpu", weights_only=True)
+    state["model_config"]["cams_centre"] = "overlap"
+    ckpt = tmp_path / "centred.pt"
+    torch.save(state, ckpt)
+    assert export_main([str(ckpt)]) == 0
+    p = parity(ckpt, onnx_path_for(ckpt))
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
+    assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL

@@ -22,6 +22,15 @@ Implementation choices (recorded here, where the code is):
   classical matching cue from the first step (FPFH nearest neighbours alone are right for
   about 20-30% of overlapping points on our pairs), so training refines it instead of
   rediscovering it. ``variant == "paper"`` uses the paper's descriptor.
+- ``centre == "overlap"`` (variant "ri"): rho is measured from the centroid of each cloud's
+  points weighted by HOCE's overlap probability to the power ``centre_power`` (gradient
+  stopped), not from the cloud's own centroid. Why: at low overlap the two clouds' own centroids
+  lie far apart in the scene, so |rho_x - rho_y| of a true correspondence is as large as a false
+  one's (on 60 validation pairs under 30% overlap it tells true from false correspondences at a
+  median AUC of 0.53), where measured from the true overlap's centroids it would be a strong cue
+  (0.92); HOCE's sharpened estimate of that centroid gives 0.64 at power 16 (0.57 at 4, 0.54 at
+  1), about as much as the confidences themselves (0.65) (runs/s32/rho_study.py, a throwaway
+  study; docs/training.md, arm 19). "own" is every checkpoint before arm 19.
 - f_mod reads [F^o_ij, m] through a split linear layer (F^o_ij and m projected separately).
 - No normalisation layers inside CAMS: they would run over N^2 x C5 elements for little gain.
 - Candidates, not all pairs (:meth:`CAMS.score_candidates`, the engine's default): the same
@@ -66,9 +75,12 @@ class SplitPairLinear(nn.Module):
 
 
 class CAMS(nn.Module):
-    def __init__(self, feat_dim: int, c5: int, variant: str, chunk_rows: int) -> None:
+    def __init__(self, feat_dim: int, c5: int, variant: str, chunk_rows: int, centre: str = "own",
+                 centre_power: float = 16.0) -> None:
         super().__init__()
         self.variant = variant
+        self.centre = centre
+        self.centre_power = centre_power
         self.chunk_rows = chunk_rows
         c_sp, n_sp = (3, 1) if variant == "paper" else (1, 2)
         self.sp1 = SplitPairLinear(c_sp, c5, n_sp)  # f_C5 on F_S, first layer
@@ -84,18 +96,36 @@ class CAMS(nn.Module):
         self.score = nn.Linear(c5, 1)              # f_C7
         self.weight = nn.Linear(c5, 1)             # f in w_i = sigmoid(f(max_j gamma F'_H))
 
-    def _spatial(self, ox: Tensor, oy: Tensor) -> tuple[Tensor, Tensor]:
+    def _spatial(self, ox: Tensor, oy: Tensor, lx: Tensor | None = None, ly: Tensor | None = None
+                 ) -> tuple[Tensor, Tensor]:
+        """The spatial descriptors of the points ox (B, N, 3), oy (B, M, 3): themselves
+        (variant "paper") or their distances (B, N, 1), (B, M, 1) from their cloud's centre,
+        which with ``centre`` "overlap" reads HOCE's overlap logits lx (B, N), ly (B, M)."""
         if self.variant == "paper":
             return ox, oy
+        if self.centre == "overlap":
+            if lx is None or ly is None:
+                raise ValueError("CAMS centre 'overlap' needs HOCE's overlap logits of both clouds")
+            return self._radius(ox, lx), self._radius(oy, ly)
         rx = (ox - ox.mean(dim=1, keepdim=True)).norm(dim=-1, keepdim=True)   # (B, N, 1)
         ry = (oy - oy.mean(dim=1, keepdim=True)).norm(dim=-1, keepdim=True)
         return rx, ry
 
+    def _radius(self, o: Tensor, logits: Tensor) -> Tensor:
+        """Distances (B, N, 1) of the points o (B, N, 3) from their centroid weighted by
+        sigmoid(logits (B, N)) ** centre_power, computed without a gradient to the logits."""
+        w = torch.exp(self.centre_power * torch.nn.functional.logsigmoid(logits.detach())).unsqueeze(-1)
+        w = w / w.sum(dim=1, keepdim=True).clamp_min(1e-30)
+        c = (w * o).sum(dim=1, keepdim=True)                                  # (B, 1, 3)
+        return (o - c).norm(dim=-1, keepdim=True)
+
     def forward(self, ox: Tensor, oy: Tensor, fx: Tensor, fy: Tensor,
-                dx: Tensor | None = None, dy: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                dx: Tensor | None = None, dy: Tensor | None = None,
+                lx: Tensor | None = None, ly: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """ox (B, N, 3), oy (B, M, 3), fx (B, N, C), fy (B, M, C), descriptors dx (B, N, D),
-        dy (B, M, D) (variant "ri") -> scores (B, N, M) (F''_H) and row confidence logits (B, N)."""
-        sx, sy = self._spatial(ox, oy)
+        dy (B, M, D) (variant "ri"), HOCE's overlap logits lx (B, N), ly (B, M) (centre
+        "overlap") -> scores (B, N, M) (F''_H) and row confidence logits (B, N)."""
+        sx, sy = self._spatial(ox, oy, lx, ly)
         sdist_full = torch.cdist(sx, sy).unsqueeze(-1)                   # (B, N, M, 1)
         if self.variant != "paper":
             if dx is None or dy is None:
@@ -130,19 +160,21 @@ class CAMS(nn.Module):
         return torch.cat(scores, dim=1), torch.cat(conf, dim=1)
 
     def score_candidates(self, ox: Tensor, oy: Tensor, fx: Tensor, fy: Tensor, cand: Tensor,
-                         dx: Tensor | None = None, dy: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                         dx: Tensor | None = None, dy: Tensor | None = None,
+                         lx: Tensor | None = None, ly: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Scores of the candidate pairs only.
 
         ox (B, N, 3), oy (B, M, 3), fx (B, N, C), fy (B, M, C), cand (B, N, k) indices into the
-        target, descriptors dx (B, N, D), dy (B, M, D) (variant "ri") -> scores (B, N, k) (F''_H
-        of pair (i, cand[i, j])) and row confidence logits (B, N).
+        target, descriptors dx (B, N, D), dy (B, M, D) (variant "ri"), HOCE's overlap logits lx
+        (B, N), ly (B, M) (centre "overlap") -> scores (B, N, k) (F''_H of pair (i, cand[i, j]))
+        and row confidence logits (B, N).
         """
         B, N, k = cand.shape
 
         def pick(y: Tensor) -> Tensor:                                   # (B, M, C) -> (B, N, k, C)
             return gather(y, cand)
 
-        sx, sy = self._spatial(ox, oy)
+        sx, sy = self._spatial(ox, oy, lx, ly)
         sy_c = pick(sy)                                                  # (B, N, k, c_sp)
         sdist = (sx.unsqueeze(2) - sy_c).norm(dim=-1, keepdim=True)      # (B, N, k, 1)
         if self.variant != "paper":

@@ -93,7 +93,8 @@ class CEGC(nn.Module):
         self.agnn = AGNN(c_edge, c_point, cfg.agnn_dims, cfg.feat_dim)
         self.context = ContextEnhancer(cfg.feat_dim, cfg.attn_heads, cfg.attn_layers)
         self.hoce = HOCE(cfg.feat_dim, cfg.hoce_topk)
-        self.cams = CAMS(cfg.feat_dim, cfg.cams_dim, cfg.variant, cfg.chunk_rows)
+        self.cams = CAMS(cfg.feat_dim, cfg.cams_dim, cfg.variant, cfg.chunk_rows, cfg.cams_centre,
+                         cfg.cams_centre_power)
 
     def encode(self, xyz: Tensor, normals: Tensor | None, desc: Tensor | None) -> Tensor:
         """Per-point local features (B, N, C2) of one cloud."""
@@ -150,7 +151,7 @@ class CEGC(nn.Module):
         if not parts:
             raise ValueError("score_candidates needs k_learned > 0 or extra candidates")
         cand = torch.cat(parts, dim=-1)                                  # (B, N, k)
-        scores, conf = self.cams.score_candidates(src, tgt, fx, fy, cand, src_desc, tgt_desc)
+        scores, conf = self.cams.score_candidates(src, tgt, fx, fy, cand, src_desc, tgt_desc, lx, ly)
         return CandidateOutput(lx, ly, cand, scores, conf, fx, fy, sim)
 
     def forward(self, src: Tensor, tgt: Tensor,
@@ -165,7 +166,8 @@ class CEGC(nn.Module):
         ox, oy = _take(src, ix), _take(tgt, iy)
         dx = _take(src_desc, ix) if src_desc is not None else None
         dy = _take(tgt_desc, iy) if tgt_desc is not None else None
-        scores, conf_logits = self.cams(ox, oy, _take(fx, ix), _take(fy, iy), dx, dy)
+        scores, conf_logits = self.cams(ox, oy, _take(fx, ix), _take(fy, iy), dx, dy, lx.gather(1, ix),
+                                        ly.gather(1, iy))
         weights = torch.sigmoid(conf_logits)                             # (B, n1)
         best = scores.argmax(dim=-1)                                     # (B, n1) into oy
         if self.training:

@@ -8,6 +8,7 @@ from typing import Any
 from ..geometry import FPFH_MAX_NN, FPFH_RADIUS, NORMAL_RADIUS
 
 VARIANTS = ("paper", "ri")
+CAMS_CENTRES = ("own", "overlap")
 
 
 @dataclass
@@ -20,7 +21,9 @@ class ModelConfig:
       spatial descriptor is ``[o_x, o_y, ||o_x - o_y||]``, both in raw coordinates.
     - ``"ri"``: rotation-invariant inputs (our default, see ``cegc.py`` for why). AGNN edges are
       point-pair features ``[|d|, n_i.d, n_j.d, n_i.n_j]`` plus a per-point FPFH descriptor;
-      CAMS's spatial descriptor uses each point's distance to its cloud's centroid.
+      CAMS's spatial descriptor uses each point's distance to its cloud's centroid
+      (``cams_centre``: "own"), or to the centroid of the points HOCE believes overlap
+      ("overlap", see cegc_ros/model/cams.py).
     """
 
     variant: str = "ri"
@@ -38,6 +41,11 @@ class ModelConfig:
     hoce_topk: int = 16                  # sorted similarities per row fed to HOCE's refinement MLP
     overlap_ratio: float = 0.5           # top-N = floor(overlap_ratio * points) (paper: 0.5)
     cams_dim: int = 32                   # C5 = C6: CAMS pair embedding width
+    # "ri": where CAMS's spatial descriptor measures each point's distance from: "own" (each
+    # cloud's centroid; every checkpoint before arm 19) or "overlap" (the centroid weighted by
+    # HOCE's overlap probability to the power cams_centre_power; cegc_ros/model/cams.py)
+    cams_centre: str = "own"
+    cams_centre_power: float = 16.0
     chunk_rows: int = 256                # CAMS rows per chunk (bounds memory at large N)
     match_temperature: float = 0.1       # softmax temperature of soft correspondences (training)
     # Input features ("ri"): normal and FPFH neighbourhoods in normalised units (see
@@ -56,6 +64,10 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.dilation must be >= 1, got {self.dilation}")
         if not 0.0 < self.overlap_ratio <= 1.0:
             raise ValueError(f"ModelConfig.overlap_ratio must be in (0, 1], got {self.overlap_ratio}")
+        if self.cams_centre not in CAMS_CENTRES:
+            raise ValueError(f"ModelConfig.cams_centre must be one of {CAMS_CENTRES}, got {self.cams_centre!r}")
+        if not self.cams_centre_power > 0:
+            raise ValueError(f"ModelConfig.cams_centre_power must be > 0, got {self.cams_centre_power}")
         self.agnn_dims = tuple(int(d) for d in self.agnn_dims)
         if len(self.agnn_dims) != 3:
             raise ValueError(f"ModelConfig.agnn_dims needs 3 layer widths, got {self.agnn_dims}")
