@@ -13,6 +13,10 @@ One pass through six stages, each a module of its own, each with bounded work:
     refine    cegc_ros/refine.py     point-to-plane ICP on capped clouds
     verify    cegc_ros/refine.py     fitness and covariance
 
+A pair the estimate stage leaves in doubt is drawn a second time from the bounded clouds
+(features onwards, cegc_ros/second_draw.py, ``engine.redraw_ambiguity``); the stage ``redraw``
+times it.
+
 Variants (ablations) are settings, not code paths: ``engine.candidates``, ``engine.confidence``,
 ``engine.estimator``, ``engine.refine`` (cegc_ros/config.py). Nothing here runs a second
 network or races a classical method: the classical peers live in cegc_ros/baselines.py, which
@@ -42,12 +46,13 @@ from .allocator import apply_thread_environment
 # processes this is the difference between 3.4 and 2.0 s a pair (shared/notes/CPU_FACTS.md).
 _THREAD_ENV_TOO_LATE = apply_thread_environment()
 
-from . import bounding, estimator, matching, refine  # noqa: E402
+from . import bounding, estimator, matching, refine, second_draw  # noqa: E402
 from .matching import NetworkOutputError  # noqa: E402,F401  (re-exported: the engine's error)
 from .config import EngineConfig, PreprocessConfig  # noqa: E402
 from .geometry import LEGACY_FEATURES, box_corner, frame_viewpoints, point_budget, prepare_pair  # noqa: E402
 from .onnx_network import RUNTIMES, OnnxNetwork  # noqa: E402
 from .verification import VerificationModel, VerificationModelError  # noqa: E402
+from .visibility import FreeSpace  # noqa: E402
 
 CHECKPOINT_FORMAT = 1
 
@@ -91,6 +96,12 @@ class RegistrationResult:
     #: verification (estimator.ambiguity; 0: no rival, 1: a tie). High values flag answers the
     #: geometry does not settle: most wrong low-overlap answers (docs/pipeline.md).
     ambiguity: float = 0.0
+    #: the estimator needed more than its first seeds (estimator.Estimate.explored)
+    explored: bool = False
+    #: draws of the network points the pair took (2: engine.redraw_ambiguity) and the sampling
+    #: seed of the one whose answer this is
+    draws: int = 1
+    seed: int = 0
 
 
 @dataclass
@@ -314,29 +325,37 @@ class Registrar:
     #: The ``engine`` settings :meth:`finish` reads (the estimate, refine and verify stages);
     #: the others act in :meth:`match_pair` or when the registrar is built.
     FINISH_SETTINGS = ("estimator", "inlier_factor", "verify_hypotheses", "verify_score", "explore_seeds",
-                       "free_space", "sure_fitness", "sure_seeds", "sure_ambiguity", "refine",
+                       "free_space", "sure_fitness", "sure_seeds", "sure_ambiguity", "redraw_ambiguity", "refine",
                        "icp_max_distance", "icp_max_iterations", "icp_points", "min_valid_fitness")
 
     def finish(self, matched: Matched) -> RegistrationResult:
         """The last three stages of :meth:`register` (estimate, refine, verify) on
         :meth:`match_pair`'s output, under this registrar's current ``engine`` settings (those of
-        :data:`FINISH_SETTINGS` matter here) and the sampling seed it was matched with;
-        ``matched`` is not changed, so it can be finished again under other settings."""
+        :data:`FINISH_SETTINGS` matter here) and the sampling seed it was matched with, with the
+        second draw where it is wanted (from ``matched.bounded``, under the current
+        ``preprocess`` settings); ``matched`` is not changed, so it can be finished again under
+        other settings."""
         with self._lock:
-            return self._finish(matched, self.engine)
+            return self._finish(matched, self.engine, self.preprocess)
 
     def _register(self, source_xyz: np.ndarray, target_xyz: np.ndarray,
                   pre: PreprocessConfig, eng: EngineConfig) -> RegistrationResult:
         """bound -> features -> match -> estimate -> refine -> verify, one timer per stage."""
-        return self._finish(self._match(source_xyz, target_xyz, pre, eng), eng)
+        return self._finish(self._match(source_xyz, target_xyz, pre, eng), eng, pre)
 
     def _match(self, source_xyz: np.ndarray, target_xyz: np.ndarray, pre: PreprocessConfig,
                eng: EngineConfig) -> Matched:
         timings: dict[str, float] = {}
-        clock = _StageClock(timings)
-        with clock("bound"):
+        with _StageClock(timings)("bound"):
             bounded = bounding.bound_pair(source_xyz, target_xyz, pre, self.MIN_POINTS)
-            src, tgt = bounded.source, bounded.target
+        return self._draw(bounded, pre, eng, timings)
+
+    def _draw(self, bounded: bounding.BoundedPair, pre: PreprocessConfig, eng: EngineConfig,
+              timings: dict[str, float]) -> Matched:
+        """The features and match stages on bounded clouds, sampled with ``pre.seed``; their
+        timers are added to ``timings``."""
+        clock = _StageClock(timings)
+        src, tgt = bounded.source, bounded.target
         with clock("features"):
             n_net, n_support = point_budget(min(len(src), len(tgt)), pre.num_points, pre.support_points,
                                             pre.points_per_network_point)
@@ -368,7 +387,36 @@ class Registrar:
                 raise CheckpointError(f"engine.verify_score learned: {err}".splitlines()[0]) from err
         return self.verifier
 
-    def _finish(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:
+    def _finish(self, matched: Matched, eng: EngineConfig, pre: PreprocessConfig) -> RegistrationResult:
+        """estimate -> refine -> verify on one draw; then, where the answer is in doubt, the
+        second draw (cegc_ros/second_draw.py) and the better of the two answers."""
+        first = self._finish_draw(matched, eng)
+        if eng.verify_score != "learned" or not second_draw.wanted(first.explored, first.ambiguity,
+                                                                   eng.redraw_ambiguity):
+            return first
+        start = time.perf_counter()
+        again = self._draw(matched.bounded, dataclasses.replace(pre, seed=matched.seed + second_draw.SEED_OFFSET),
+                           eng, {})
+        second = self._finish_draw(again, eng)
+        draws = [self._draw_evidence(m, r) for m, r in ((matched, first), (again, second))]
+        space = FreeSpace(matched.bounded.source, matched.bounded.target) if eng.free_space > 0 else None
+        pick = second_draw.choose(self._verification_model(), np.stack([first.T_target_source,
+                                                                        second.T_target_source]),
+                                  np.array([first.valid, second.valid]), draws, space)
+        timings = dict(first.timings)
+        timings["redraw"] = time.perf_counter() - start
+        timings["total"] = first.timings["total"] + timings["redraw"]
+        return dataclasses.replace((first, second)[pick], timings=timings, draws=2)
+
+    @staticmethod
+    def _draw_evidence(matched: Matched, result: RegistrationResult) -> second_draw.Draw:
+        """What :func:`second_draw.scores` reads of one finished draw."""
+        m, c = matched.matches, matched.matches.correspondences
+        return second_draw.Draw(matched.source_points, matched.target_points, matched.source_points[c[:, 0]],
+                                matched.target_points[c[:, 1]], m.weights, m.similarity, m.source_overlap,
+                                result.inlier_distance)
+
+    def _finish_draw(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:
         timings = dict(matched.timings)
         clock = _StageClock(timings)
         src, tgt = matched.bounded.source, matched.bounded.target
@@ -410,7 +458,8 @@ class Registrar:
             source_overlap=m.source_overlap, target_overlap=m.target_overlap, correspondences=c,
             weights=m.weights, inliers=inl, covariance=cov, fitness=fit, inlier_distance=inlier, valid=valid,
             reason=reason, refined=refined, runtime=matched.runtime, voxel_size=bounded.voxel,
-            dropped=bounded.dropped, timings=timings, hypotheses=est.hypotheses, ambiguity=est.ambiguity)
+            dropped=bounded.dropped, timings=timings, hypotheses=est.hypotheses, ambiguity=est.ambiguity,
+            explored=est.explored, seed=matched.seed)
 
 
 class _StageClock:

@@ -122,6 +122,10 @@ class Estimate:
     #: the chosen one's (:func:`ambiguity`): 0 when none is near it (or nothing was verified),
     #: 1 a tie. How much the clouds' geometry prefers the answer to another alignment.
     ambiguity: float = 0.0
+    #: whether the choice took more than the first seeds (their choice was unsure: its fitness
+    #: below sure_fitness and not unambiguous), i.e. the rest of the spectral seeds or the
+    #: exploring pass (cegc_ros/second_draw.py reads it)
+    explored: bool = False
 
 
 def kabsch(src: np.ndarray, tgt: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -499,6 +503,7 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     best = int(total.argmax())
     hypotheses = np.zeros((0, 4, 4))
     rivalry = 0.0
+    explored = False
     if verifying:
         explore = cfg.explore_seeds > 0
         known: dict[int, tuple[float, float, float, float]] = {}
@@ -517,10 +522,12 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
                                                    and rivalry <= cfg.sure_ambiguity)
         best, top, fit, rivalry = verified(None if explore else visibility)
         if tried < len(seeds) and unsure(fit, rivalry):
+            explored = True
             # the strongest seeds left the pair unsure: the rest of the spectral seeds
             R, t, res, total = _more_hypotheses((R, t, res, total), hard, seeds[tried:], src, tgt, w, thr, cfg)
             best, top, fit, rivalry = verified(None if explore else visibility)
         if explore and unsure(fit, rivalry):
+            explored = True
             # not sure: more seeds drawn at random among the rest, all hypotheses verified again
             # with the free-space check
             rest = np.setdiff1d(np.flatnonzero(w > 0), seeds)
@@ -550,8 +557,8 @@ def estimate_compatibility(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inli
     inliers = rb < thr
     if inliers.sum() < 3:
         return Estimate(Rb, tb, inliers, False, "fewer than 3 correspondences agree with any hypothesis",
-                        hypotheses, rivalry)
-    return Estimate(Rb, tb, inliers, True, hypotheses=hypotheses, ambiguity=rivalry)
+                        hypotheses, rivalry, explored)
+    return Estimate(Rb, tb, inliers, True, hypotheses=hypotheses, ambiguity=rivalry, explored=explored)
 
 
 def estimate_svd(src: np.ndarray, tgt: np.ndarray, w: np.ndarray, inlier_distance: float,

@@ -33,6 +33,7 @@ class Result:
     reason: str = ""
     refined: str = "none"
     ambiguity: float = 0.0
+    draws: int = 1
     timings: dict = field(default_factory=dict)
     checksum: float = 0.0         # sum of every coordinate received (data integrity checks)
     pid: int = 0                  # the process that registered

@@ -37,7 +37,8 @@ SEC = 10**9
 
 class FakeRegistrar:
     """Answers T_KNOWN; fitness = (#source points % 100) / 100, ambiguity = (#target points %
-    100) / 100; invalid for 99 source points."""
+    100) / 100, two draws above ambiguity 0.5 (as engine.redraw_ambiguity); invalid for 99
+    source points."""
 
     MIN_POINTS = 16
     device = "cpu"
@@ -72,7 +73,8 @@ class FakeRegistrar:
         w = np.linspace(0, 1, m, dtype=np.float32)
         return Result(T_KNOWN, s, t, so, to, corr, w, np.eye(6) * 1e-4,
                           (len(src) % 100) / 100, len(src) != 99,
-                          "" if len(src) != 99 else "degenerate (test)", ambiguity=(len(tgt) % 100) / 100)
+                          "" if len(src) != 99 else "degenerate (test)", ambiguity=(len(tgt) % 100) / 100,
+                          draws=1 + int(len(tgt) % 100 > 50))
 
 
 @pytest.fixture(scope="module")
@@ -361,7 +363,7 @@ def test_every_finished_pair_has_a_quality_message_published_or_rejected(ros):
     assert status.name == probe.status_name and status.level == DiagnosticStatus.OK
     assert status.message == "pose published"
     assert v == {"published": "true", "reason": "", "fitness": "0.3000", "ambiguity": "0.6000",
-                 "correspondences": "64", "engine_ms": "nan"}
+                 "correspondences": "64", "engine_ms": "nan", "draws": "2"}
 
     assert node.set_parameters([Parameter("output.max_ambiguity", value=0.4)])[0].successful
     t += SEC
@@ -385,7 +387,7 @@ def test_every_finished_pair_has_a_quality_message_published_or_rejected(ros):
     _, status, v = _quality(probe, t)
     assert status.level == DiagnosticStatus.WARN and status.message.startswith("too_few_points: ")
     assert v == {"published": "false", "reason": "too_few_points", "fitness": "nan",
-                 "ambiguity": "nan", "correspondences": "", "engine_ms": "nan"}
+                 "ambiguity": "nan", "correspondences": "", "engine_ms": "nan", "draws": ""}
 
 
 def test_sync_slop_out_of_order_and_unpaired(ros):

@@ -403,7 +403,7 @@ def test_quality_has_one_message_per_cloud_accepted_or_rejected():
         assert v["fitness"] == f"{frame.fitness:.4f}" and v["overlap"] == f"{frame.overlap:.4f}"
         assert v["keyframe"] == str(frame.new_keyframe).lower() and v["detail"] == frame.reason
         # tracking sufficed: no global registration, so none of its numbers
-        assert (v["ambiguity"], v["correspondences"], v["engine_ms"]) == ("nan", "", "nan")
+        assert (v["ambiguity"], v["correspondences"], v["engine_ms"], v["draws"]) == ("nan", "", "nan", "")
     assert status(10 * sec)[1]["keyframe"] == "true"
 
     st, v = status(12 * sec)     # tracking fails, the echo's global answer fails its ICP check
@@ -415,7 +415,7 @@ def test_quality_has_one_message_per_cloud_accepted_or_rejected():
                  "detail": f"cloud not registered: {frame.reason}", "method": "none",
                  "keyframe": "false", "fitness": f"{frame.fitness:.4f}",
                  "overlap": f"{frame.overlap:.4f}", "ambiguity": "0.0000",   # the echo's
-                 "correspondences": "32", "engine_ms": "nan"}
+                 "correspondences": "32", "engine_ms": "nan", "draws": "1"}
 
     st, v = status(9 * sec)                      # refused by the odometry: no frame
     assert 9 * sec not in frames

@@ -53,9 +53,11 @@ def _number(obj: Any, name: str) -> str:
 
 def quality_values(result: Any, rejected: Rejected | None) -> dict[str, str]:
     """The ``~/quality`` key-values of one finished pair: whether its pose went out, why not,
-    and the engine's measures of it ("nan" / "" where the engine gave no result)."""
+    and the engine's measures of it ("nan" / "" where the engine gave no result); ``draws``: the
+    draws of the network points the pair took (2: engine.redraw_ambiguity)."""
     corr = getattr(result, "correspondences", None)
     total = (getattr(result, "timings", None) or {}).get("total")
+    draws = getattr(result, "draws", None)
     return {
         "published": str(rejected is None).lower(),
         "reason": "" if rejected is None else rejected.reason,
@@ -63,6 +65,7 @@ def quality_values(result: Any, rejected: Rejected | None) -> dict[str, str]:
         "ambiguity": _number(result, "ambiguity"),
         "correspondences": "" if corr is None else str(len(corr)),
         "engine_ms": "nan" if total is None else f"{1e3 * float(total):.1f}",
+        "draws": "" if draws is None else str(int(draws)),
     }
 
 
