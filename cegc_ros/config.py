@@ -145,14 +145,16 @@ class EngineConfig:
         "synthetic validation or test-bag result against -1 and spares a fifth of the "
         "validation pairs the exploring pass (docs/pipeline.md). See cegc_ros/estimator.py.",
         -1.0, 1.0))
-    redraw_ambiguity: float = field(default=0.5, metadata=_meta(
+    redraw_ambiguity: float = field(default=1.0, metadata=_meta(
         "A second draw of the network points (sampling seed preprocess.seed + 7919) when the "
         "estimator's choice needed its exploring pass and its ambiguity is above this: the pair "
         "is registered again and the answer the learned verification scores higher over both "
-        "draws is kept. Pairs the first draw settles pay nothing; those it leaves in doubt "
-        "(mostly under 30% overlap) about twice the features, match and estimate stages. "
-        "Needs verify_score 'learned'; 1: never. 0.5 was chosen on synthetic validation pairs "
-        "(docs/pipeline.md). See cegc_ros/second_draw.py.", 0.0, 1.0))
+        "draws is kept. Needs verify_score 'learned'; 1 (default): never. 0.5 registers more "
+        "low-overlap pairs (synthetic validation pairs under 30% overlap 48% -> 53%, test bags "
+        "45% -> 52% and 58% -> 62%) and costs those it leaves in doubt a second features, match, "
+        "estimate and refine stage (the benchmark's 20k-point pairs 170 -> 290 ms), beyond the "
+        "speed targets: off by default, for loop closures and other pairs where a right answer "
+        "is worth the time (docs/pipeline.md). See cegc_ros/second_draw.py.", 0.0, 1.0))
     sure_seeds: int = field(default=16, metadata=_meta(
         "The estimator first builds hypotheses from this many of its strongest spectral seeds "
         "and builds the rest only when the choice among those has a fitness below "
