@@ -183,3 +183,21 @@ def test_every_float_parameter_takes_an_integer():
             continue
         assert check_value(s, value) is None, s.name
         assert type(coerce(s, value)) is float
+
+
+def test_the_loop_closure_overlay_loads_after_the_defaults():
+    """`--params-file params/register_node.yaml --params-file params/loop_closure.yaml` (as
+    docs/node.md shows): the later file's engine.redraw_ambiguity wins, everything else is the
+    defaults' file, and nothing is unknown."""
+    from pathlib import Path
+    params = Path(__file__).resolve().parents[1] / "params"
+    run = _Running(["--params-file", str(params / "register_node.yaml"),
+                    "--params-file", str(params / "loop_closure.yaml")], namespace="/lc")
+    try:
+        node = run.node
+        assert node.get_parameter("engine.redraw_ambiguity").value == 0.5
+        assert node.cfg["engine"].redraw_ambiguity == 0.5
+        assert node.get_parameter("engine.sure_ambiguity").value == 0.3
+        assert node.unknown_parameters == []
+    finally:
+        run.close()
