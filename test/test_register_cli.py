@@ -37,7 +37,8 @@ def test_json_result_matches_the_ground_truth_and_out_moves_the_source(pair, tmp
     out = tmp_path / "moved.npy"
     assert cli.main([str(source), str(target), "--json", "--out", str(out)]) == 0
     doc = json.loads(capsys.readouterr().out)          # exactly one JSON object
-    assert set(doc) >= {"T_target_source", "fitness", "ambiguity", "valid", "timings"}
+    assert set(doc) >= {"T_target_source", "fitness", "ambiguity", "draws", "valid", "timings"}
+    assert doc["draws"] == 1 and "redraw" not in doc["timings"]   # the default: one draw
     T = np.array(doc["T_target_source"])
     assert T.shape == (4, 4) and doc["valid"] is True
     # The first network + ICP on this kind of pair: hundredths of a degree (docs/accuracy.md).
@@ -67,6 +68,15 @@ def test_readable_output_with_the_nodes_params_file(pair, tmp_path, capsys):
     assert text[6].startswith("fitness  ") and text[7].startswith("ambiguity ")
     assert text[8] == "valid    yes"
     assert text[9].startswith("timings  ms: ") and "total" in text[9]
+    # a pair the engine drew twice says so, before the timings (which include the redraw stage)
+    import dataclasses
+    from cegc_ros.engine import RegistrationResult
+    one = RegistrationResult(np.eye(4), *(np.zeros((0, 3), np.float32),) * 2, *(np.zeros(0, np.float32),) * 2,
+                             np.zeros((0, 2), np.int64), np.zeros(0, np.float32), np.zeros(0, bool), np.eye(6),
+                             0.5, 0.1, True, timings={"estimate": 0.05, "redraw": 0.1, "total": 0.15})
+    assert "draws" not in cli.format_result(one)
+    lines = cli.format_result(dataclasses.replace(one, draws=2)).splitlines()
+    assert lines[-2].startswith("draws    2 ") and "redraw 100.0" in lines[-1]
 
 
 def _error(capsys, argv: list[str]) -> str:

@@ -7,9 +7,10 @@ SOURCE and TARGET: .npy ((N, 3) or wider: the first three columns are x, y, z) o
 cloud file Open3D reads (.ply, .pcd, .xyz, .xyzn, .xyzrgb, .pts); units are metres for the
 node's default parameters. Prints T_target_source (maps source points into the target frame)
 as a 4x4 matrix, the fitness, the ambiguity (how close another alignment came: 0 to 1),
-whether the result is valid and the time of each stage; ``--json`` prints the same as one JSON
-object instead (keys T_target_source, fitness, ambiguity, valid, reason, timings; timings in
-seconds). ``--params`` takes the node's parameter file
+whether the result is valid (and, for a pair drawn twice, ``draws 2``: the second draw of
+``engine.redraw_ambiguity``) and the time of each stage; ``--json`` prints the same as one JSON
+object instead (keys T_target_source, fitness, ambiguity, draws, valid, reason, timings;
+timings in seconds). ``--params`` takes the node's parameter file
 (``preprocess.*`` and ``engine.*`` are used); ``--out`` writes the source moved into the target
 frame (.npy, or a format Open3D writes: .ply, .pcd, .xyz, .pts).
 
@@ -171,6 +172,7 @@ def result_dict(result: Any) -> dict[str, Any]:
     return {"T_target_source": np.asarray(result.T_target_source, float).tolist(),
             "fitness": float(result.fitness),
             "ambiguity": float(result.ambiguity),
+            "draws": int(getattr(result, "draws", 1)),
             "valid": bool(result.valid),
             "reason": result.reason,
             "timings": {k: float(v) for k, v in result.timings.items()}}
@@ -198,6 +200,8 @@ def format_result(result: Any) -> str:
         "valid    " + ("yes" if result.valid else f"no: {result.reason}"),
         f"timings  ms: {stages}" + (f"; total {1000 * total:.1f}" if total is not None else ""),
     ]
+    if getattr(result, "draws", 1) > 1:
+        lines.insert(-1, f"draws    {result.draws} (the network points drawn again: engine.redraw_ambiguity)")
     return "\n".join(lines)
 
 
