@@ -405,4 +405,3 @@ def test_overlap_centre_network_is_invariant_to_each_clouds_pose():
     assert torch.equal(a.candidates, b.candidates)
     torch.testing.assert_close(a.scores, b.scores, atol=1e-3, rtol=1e-3)
     torch.testing.assert_close(a.src_overlap_logits, b.src_overlap_logits, atol=1e-3, rtol=1e-3)
-

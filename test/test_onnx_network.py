@@ -138,4 +138,3 @@ def test_export_errors_are_one_line(tmp_path, capsys):
     assert export_main([str(tmp_path / "missing.pt")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("export_onnx: checkpoint ") and "file not found" in err and "\n" not in err
-
