@@ -383,6 +383,8 @@ def test_cams_overlap_centre_is_hoces_sharpened_centroid():
     peak = torch.full((2, 40), -4.0)
     peak[:, 7] = 6.0
     assert sharp._radius(o, peak)[:, 7].abs().max() < 1e-3
+    # every logit far below zero: still the (equal-weight) centroid, finite
+    torch.testing.assert_close(cams._radius(o, torch.full((2, 40), -200.0)), CAMS(16, 8, "ri", 64)._spatial(o, o)[0])
     # no gradient reaches HOCE's logits through the centre
     lg, og = logits.clone().requires_grad_(True), o.clone().requires_grad_(True)
     cams._radius(og, lg).sum().backward()

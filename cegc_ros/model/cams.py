@@ -114,9 +114,9 @@ class CAMS(nn.Module):
     def _radius(self, o: Tensor, logits: Tensor) -> Tensor:
         """Distances (B, N, 1) of the points o (B, N, 3) from their centroid weighted by
         sigmoid(logits (B, N)) ** centre_power, computed without a gradient to the logits."""
-        w = torch.exp(self.centre_power * torch.nn.functional.logsigmoid(logits.detach())).unsqueeze(-1)
-        w = w / w.sum(dim=1, keepdim=True).clamp_min(1e-30)
-        c = (w * o).sum(dim=1, keepdim=True)                                  # (B, 1, 3)
+        # the normalised weights in log space: no underflow when every logit is very negative
+        w = torch.softmax(self.centre_power * torch.nn.functional.logsigmoid(logits.detach()), dim=1)
+        c = (w.unsqueeze(-1) * o).sum(dim=1, keepdim=True)                    # (B, 1, 3)
         return (o - c).norm(dim=-1, keepdim=True)
 
     def forward(self, ox: Tensor, oy: Tensor, fx: Tensor, fy: Tensor,
