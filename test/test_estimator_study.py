@@ -47,11 +47,13 @@ def test_finish_of_match_pair_is_register(val_cache, registrar):
 
 
 def test_finish_settings_are_the_ones_finish_reads():
-    """Registrar.FINISH_SETTINGS lists exactly the engine settings _finish reads: the study tool
-    refuses the others, which would silently change nothing there."""
+    """Registrar.FINISH_SETTINGS lists exactly the engine settings _finish reads (itself and
+    _finish_draw, each draw's estimate, refine and verify): the study tool refuses the others,
+    which would silently change nothing there."""
     from cegc_ros.config import EngineConfig
     from cegc_ros.engine import Registrar
-    read = set(re.findall(r"\beng\.(\w+)", inspect.getsource(Registrar._finish)))
+    source = inspect.getsource(Registrar._finish) + inspect.getsource(Registrar._finish_draw)
+    read = set(re.findall(r"\beng\.(\w+)", source))
     assert read == set(Registrar.FINISH_SETTINGS)
     assert read <= {f.name for f in dataclasses.fields(EngineConfig)}
 
