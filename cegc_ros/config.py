@@ -152,7 +152,7 @@ class EngineConfig:
         "draws is kept. Needs verify_score 'learned'; 1 (default): never. 0.5 registers more "
         "low-overlap pairs (synthetic validation pairs under 30% overlap 48% -> 53%, test bags "
         "45% -> 52% and 58% -> 62%) and costs those it leaves in doubt a second features, match, "
-        "estimate and refine stage (the benchmark's 20k-point pairs 170 -> 290 ms), beyond the "
+        "estimate and refine stage (the benchmark's 20k-point pairs 186 -> 286 ms), beyond the "
         "speed targets: off by default, for loop closures and other pairs where a right answer "
         "is worth the time (docs/pipeline.md). See cegc_ros/second_draw.py.", 0.0, 1.0))
     sure_seeds: int = field(default=16, metadata=_meta(
