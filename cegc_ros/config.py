@@ -150,8 +150,8 @@ class EngineConfig:
         "estimator's choice needed its exploring pass and its ambiguity is above this: the pair "
         "is registered again and the answer the learned verification scores higher over both "
         "draws is kept. Needs verify_score 'learned'; 1 (default): never. 0.5 registers more "
-        "low-overlap pairs (synthetic validation pairs under 30% overlap 48% -> 53%, test bags "
-        "45% -> 52% and 58% -> 62%) and costs those it leaves in doubt a second features, match, "
+        "low-overlap pairs (the test bags' pairs under 30% overlap 47% -> 53% and 56% -> 63%) "
+        "and costs those it leaves in doubt a second features, match, "
         "estimate and refine stage (the benchmark's 20k-point pairs 186 -> 286 ms), beyond the "
         "speed targets: off by default, for loop closures and other pairs where a right answer "
         "is worth the time (docs/pipeline.md). See cegc_ros/second_draw.py.", 0.0, 1.0))
