@@ -398,7 +398,7 @@ class Registrar:
         again = self._draw(matched.bounded, dataclasses.replace(pre, seed=matched.seed + second_draw.SEED_OFFSET),
                            eng, {})
         second = self._finish_draw(again, eng)
-        draws = [self._draw_evidence(m, r) for m, r in ((matched, first), (again, second))]
+        draws = [self.draw_evidence(m, r.inlier_distance) for m, r in ((matched, first), (again, second))]
         space = FreeSpace(matched.bounded.source, matched.bounded.target) if eng.free_space > 0 else None
         pick = second_draw.choose(self._verification_model(), np.stack([first.T_target_source,
                                                                         second.T_target_source]),
@@ -409,12 +409,13 @@ class Registrar:
         return dataclasses.replace((first, second)[pick], timings=timings, draws=2)
 
     @staticmethod
-    def _draw_evidence(matched: Matched, result: RegistrationResult) -> second_draw.Draw:
-        """What :func:`second_draw.scores` reads of one finished draw."""
+    def draw_evidence(matched: Matched, inlier_distance: float) -> second_draw.Draw:
+        """What the learned verification reads of one draw (:func:`second_draw.pose_features`),
+        at the inlier distance its result was finished with."""
         m, c = matched.matches, matched.matches.correspondences
         return second_draw.Draw(matched.source_points, matched.target_points, matched.source_points[c[:, 0]],
                                 matched.target_points[c[:, 1]], m.weights, m.similarity, m.source_overlap,
-                                result.inlier_distance)
+                                inlier_distance)
 
     def _finish_draw(self, matched: Matched, eng: EngineConfig) -> RegistrationResult:
         timings = dict(matched.timings)

@@ -321,7 +321,7 @@ def _counts(res: np.ndarray, w: np.ndarray, thr: float) -> np.ndarray:
 def hypothesis_counts(R: np.ndarray, t: np.ndarray, src: np.ndarray, tgt: np.ndarray, w: np.ndarray,
                       inlier_distance: float) -> np.ndarray:
     """Step 5's count of poses R (H, 3, 3), t (H, 3) on correspondences src -> tgt ((K, 3) each)
-    with confidences w (K,), as the estimator counts them -> (H,) (cegc_ros/tools/fit_verification.py)."""
+    with confidences w (K,), as the estimator counts them -> (H,) (cegc_ros/second_draw.py)."""
     w = np.clip(np.nan_to_num(np.asarray(w, np.float64)), 0.0, None)
     res = _residuals(np.asarray(R, np.float64), np.asarray(t, np.float64), np.asarray(src, np.float64),
                      np.asarray(tgt, np.float64))

@@ -22,7 +22,7 @@ import numpy as np
 
 from .estimator import hypothesis_counts
 from .refine import landing_evidence
-from .verification import FEATURES, VerificationModel, features
+from .verification import VerificationModel, features
 from .visibility import FreeSpace
 
 #: The second draw samples with preprocess.seed + this (any fixed offset would do; a prime
@@ -52,9 +52,10 @@ class Draw:
     inlier_distance: float
 
 
-def evidence(model: VerificationModel, T: np.ndarray, draw: Draw) -> np.ndarray:
-    """The learned verification's linear score (before the free-space term and the scale) of
-    poses T (H, 4, 4) on one draw -> (H,): the same evidence the estimator's verification reads."""
+def pose_features(T: np.ndarray, draw: Draw) -> np.ndarray:
+    """The learned verification's evidence (:data:`cegc_ros.verification.FEATURES`) of poses T
+    (H, 4, 4) on one draw -> (H, len(FEATURES)): the estimator's count and the landing evidence,
+    as its verification reads them (also what tools/fit_verification.py fits on)."""
     R, t = T[:, :3, :3], T[:, :3, 3]
     count = hypothesis_counts(R, t, draw.source_matched, draw.target_matched, draw.weights,
                               draw.inlier_distance)
@@ -62,8 +63,13 @@ def evidence(model: VerificationModel, T: np.ndarray, draw: Draw) -> np.ndarray:
                                                      draw.similarity,
                                                      np.asarray(draw.source_overlap, np.float64),
                                                      draw.inlier_distance)
-    x = features(count, agree, fit, landed, precision)
-    return x @ np.array([model.weights[f] for f in FEATURES])
+    return features(count, agree, fit, landed, precision)
+
+
+def evidence(model: VerificationModel, T: np.ndarray, draw: Draw) -> np.ndarray:
+    """The learned verification's linear score (before the free-space term and the scale) of
+    poses T (H, 4, 4) on one draw -> (H,)."""
+    return model.linear(pose_features(T, draw))
 
 
 def scores(model: VerificationModel, T: np.ndarray, draws: list[Draw], space: FreeSpace | None) -> np.ndarray:

@@ -74,9 +74,14 @@ class VerificationModel:
         """p: the power that makes a score read like count x agreement."""
         return 2.0 / (self.weights["log_count"] + self.weights["log_agreement"])
 
+    def linear(self, x: np.ndarray) -> np.ndarray:
+        """(H, len(FEATURES)) -> (H,) the weighted sum of the evidence (before the scale and the
+        free-space term): what :meth:`ranks` normalises, comparable across calls."""
+        return np.asarray(x, np.float64) @ np.array([self.weights[f] for f in FEATURES])
+
     def ranks(self, x: np.ndarray) -> np.ndarray:
         """(H, len(FEATURES)) -> (H,) scores in (0, 1] before the free-space factor (the best 1)."""
-        s = np.asarray(x, np.float64) @ np.array([self.weights[f] for f in FEATURES])
+        s = self.linear(x)
         return np.exp(self.scale * (s - s.max()))
 
     def log_scores(self, x: np.ndarray, violations: np.ndarray) -> np.ndarray:

@@ -121,7 +121,7 @@ def test_the_engine_draws_again_when_in_doubt_and_keeps_the_answer_the_verificat
     m1 = reg.match_pair(pair.source, pair.target)
     reg.update(preprocess=dataclasses.replace(reg.preprocess, seed=seed + S.SEED_OFFSET))
     m2 = reg.match_pair(pair.source, pair.target)
-    draws = [engine.Registrar._draw_evidence(m, r) for m, r in ((m1, first), (m2, second))]
+    draws = [engine.Registrar.draw_evidence(m, r.inlier_distance) for m, r in ((m1, first), (m2, second))]
     pick = S.choose(reg.verifier, np.stack([first.T_target_source, second.T_target_source]),
                     np.array([first.valid, second.valid]), draws, FreeSpace(m1.bounded.source, m1.bounded.target))
     chosen, other = (first, second)[pick], (first, second)[1 - pick]

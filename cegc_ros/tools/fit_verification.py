@@ -48,23 +48,16 @@ def training_pairs(cache_dir: Path, n: int, low_share: float) -> Iterator[Any]:
 def evidence(registrar: Any, pair: Any) -> dict[str, np.ndarray]:
     """Register one pair; the evidence of each hypothesis its verification ranked -> x (H, F),
     violations (H,), right (H,) bool (H = 0 when none was ranked)."""
-    from cegc_ros import estimator, verification
+    from cegc_ros import second_draw, verification
     from cegc_ros.metrics import within
-    from cegc_ros.refine import landing_evidence
     from cegc_ros.visibility import FreeSpace
     m = registrar.match_pair(pair.source, pair.target)
     res = registrar.finish(m)
     H = res.hypotheses
     if len(H) == 0:
         return {"x": np.zeros((0, len(verification.FEATURES))), "violations": np.zeros(0), "right": np.zeros(0, bool)}
-    R, t, thr = H[:, :3, :3], H[:, :3, 3], res.inlier_distance
-    c = m.matches.correspondences
-    count = estimator.hypothesis_counts(R, t, m.source_points[c[:, 0]], m.target_points[c[:, 1]],
-                                        m.matches.weights, thr)
-    fit, agree, landed, precision = landing_evidence(R, t, m.source_points, m.target_points, m.matches.similarity,
-                                                     m.matches.source_overlap, thr)
-    return {"x": verification.features(count, agree, fit, landed, precision),
-            "violations": FreeSpace(m.bounded.source, m.bounded.target).violations(R, t),
+    return {"x": second_draw.pose_features(H, registrar.draw_evidence(m, res.inlier_distance)),
+            "violations": FreeSpace(m.bounded.source, m.bounded.target).violations(H[:, :3, :3], H[:, :3, 3]),
             "right": np.array([within(pair.T_target_source, T) for T in H], bool)}
 
 
