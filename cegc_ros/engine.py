@@ -19,8 +19,8 @@ times it.
 
 Variants (ablations) are settings, not code paths: ``engine.candidates``, ``engine.confidence``,
 ``engine.estimator``, ``engine.refine`` (cegc_ros/config.py). Nothing here runs a second
-network (the second draw runs the same one again) or races a classical method: the classical peers live in cegc_ros/baselines.py, which
-reuses these stages; the engine never imports it.
+network (the second draw runs the same one again) or races a classical method: the classical
+peers live in cegc_ros/baselines.py, which reuses these stages; the engine never imports it.
 """
 
 from __future__ import annotations
