@@ -244,9 +244,10 @@ def test_config_rejects_bad_values():
         ModelConfig(dilation=0)
     # checkpoints written before the field existed load with the paper's neighbourhood
     old = ModelConfig().to_dict()
-    del old["dilation"], old["cams_centre"], old["cams_centre_power"]
+    del old["dilation"], old["cams_centre"], old["cams_centre_power"], old["cams_centre_gradient"]
     assert ModelConfig.from_dict(old).dilation == 1
     assert ModelConfig.from_dict(old).cams_centre == "own"
+    assert ModelConfig.from_dict(old).cams_centre_gradient is False
     assert ModelConfig.from_dict(ModelConfig().to_dict()) == ModelConfig()
 
 
@@ -389,6 +390,13 @@ def test_cams_overlap_centre_is_hoces_sharpened_centroid():
     lg, og = logits.clone().requires_grad_(True), o.clone().requires_grad_(True)
     cams._radius(og, lg).sum().backward()
     assert lg.grad is None and og.grad is not None
+    # ... unless centre_gradient: the same radii, and the logits get a gradient
+    through = CAMS(16, 8, "ri", 64, centre="overlap", centre_power=4.0, centre_gradient=True)
+    lg = logits.clone().requires_grad_(True)
+    r = through._radius(o, lg)
+    torch.testing.assert_close(r, cams._radius(o, logits))
+    r.sum().backward()
+    assert lg.grad is not None and lg.grad.abs().max() > 0
     with pytest.raises(ValueError, match="overlap logits"):
         cams._spatial(o, o)
 

@@ -30,7 +30,10 @@ Implementation choices (recorded here, where the code is):
   median AUC of 0.53), where measured from the true overlap's centroids it would be a strong cue
   (0.92); HOCE's sharpened estimate of that centroid gives 0.64 at power 16 (0.57 at 4, 0.54 at
   1), about as much as the confidences themselves (0.65) (runs/s32/rho_study.py, a throwaway
-  study; docs/training.md, arm 19). "own" is every checkpoint before arm 19.
+  study; docs/training.md, arm 19). "own" is every checkpoint before arm 19. With
+  ``centre_gradient`` (training only; the forward pass is the same) CAMS's losses also reach
+  HOCE's logits through the centre, so HOCE learns to put the centre where CAMS needs it
+  (arm 20); arm 19 trained with the gradient stopped.
 - f_mod reads [F^o_ij, m] through a split linear layer (F^o_ij and m projected separately).
 - No normalisation layers inside CAMS: they would run over N^2 x C5 elements for little gain.
 - Candidates, not all pairs (:meth:`CAMS.score_candidates`, the engine's default): the same
@@ -76,11 +79,12 @@ class SplitPairLinear(nn.Module):
 
 class CAMS(nn.Module):
     def __init__(self, feat_dim: int, c5: int, variant: str, chunk_rows: int, centre: str = "own",
-                 centre_power: float = 16.0) -> None:
+                 centre_power: float = 16.0, centre_gradient: bool = False) -> None:
         super().__init__()
         self.variant = variant
         self.centre = centre
         self.centre_power = centre_power
+        self.centre_gradient = centre_gradient
         self.chunk_rows = chunk_rows
         c_sp, n_sp = (3, 1) if variant == "paper" else (1, 2)
         self.sp1 = SplitPairLinear(c_sp, c5, n_sp)  # f_C5 on F_S, first layer
@@ -113,9 +117,12 @@ class CAMS(nn.Module):
 
     def _radius(self, o: Tensor, logits: Tensor) -> Tensor:
         """Distances (B, N, 1) of the points o (B, N, 3) from their centroid weighted by
-        sigmoid(logits (B, N)) ** centre_power, computed without a gradient to the logits."""
+        sigmoid(logits (B, N)) ** centre_power; no gradient reaches the logits unless
+        ``centre_gradient``."""
+        if not self.centre_gradient:
+            logits = logits.detach()
         # the normalised weights in log space: no underflow when every logit is very negative
-        w = torch.softmax(self.centre_power * torch.nn.functional.logsigmoid(logits.detach()), dim=1)
+        w = torch.softmax(self.centre_power * torch.nn.functional.logsigmoid(logits), dim=1)
         c = (w.unsqueeze(-1) * o).sum(dim=1, keepdim=True)                    # (B, 1, 3)
         return (o - c).norm(dim=-1, keepdim=True)
 

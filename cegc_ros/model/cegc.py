@@ -94,7 +94,7 @@ class CEGC(nn.Module):
         self.context = ContextEnhancer(cfg.feat_dim, cfg.attn_heads, cfg.attn_layers)
         self.hoce = HOCE(cfg.feat_dim, cfg.hoce_topk)
         self.cams = CAMS(cfg.feat_dim, cfg.cams_dim, cfg.variant, cfg.chunk_rows, cfg.cams_centre,
-                         cfg.cams_centre_power)
+                         cfg.cams_centre_power, cfg.cams_centre_gradient)
 
     def encode(self, xyz: Tensor, normals: Tensor | None, desc: Tensor | None) -> Tensor:
         """Per-point local features (B, N, C2) of one cloud."""

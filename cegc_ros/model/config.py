@@ -46,6 +46,9 @@ class ModelConfig:
     # HOCE's overlap probability to the power cams_centre_power; cegc_ros/model/cams.py)
     cams_centre: str = "own"
     cams_centre_power: float = 16.0
+    # training only (the forward pass is the same): whether CAMS's losses reach HOCE's logits
+    # through the "overlap" centre (arm 20) or stop there (arm 19 and every checkpoint before)
+    cams_centre_gradient: bool = False
     chunk_rows: int = 256                # CAMS rows per chunk (bounds memory at large N)
     match_temperature: float = 0.1       # softmax temperature of soft correspondences (training)
     # Input features ("ri"): normal and FPFH neighbourhoods in normalised units (see
