@@ -15,11 +15,11 @@ the same bounded work afterwards).
    box that holds all but :data:`EXTENT_TRIM` of the points on each side of each axis, so that
    a few per cent of flying pixels 10 m out change neither the grid nor the result; each cloud
    measured in its own frame, so it does not depend on the unknown motion; one size for both
-   clouds, so both are sampled alike). Why 0.01: KISS-ICP derives its voxel the same way (max range / 100) for any sensor;
-   on the 1536-point 7Scenes-protocol crops (unit box) a 0.01 grid leaves almost every point
-   alone, so clouds cut from one point set keep their exact shared points, and a 4 m Kinect
-   fragment gets 4 cm voxels (3DMatch's fragments use 2.5 cm, its FPFH pipelines 5 cm).
-   ``voxel_size = 0`` and ``voxel_ratio = 0`` switch the grid off;
+   clouds, so both are sampled alike). Why 0.01: KISS-ICP derives its voxel the same way (max
+   range / 100) for any sensor; on the 1536-point 7Scenes-protocol crops (unit box) a 0.01 grid
+   leaves almost every point alone, so clouds cut from one point set keep their exact shared
+   points, and a 4 m Kinect fragment gets 4 cm voxels (3DMatch's fragments use 2.5 cm, its FPFH
+   pipelines 5 cm). ``voxel_size = 0`` and ``voxel_ratio = 0`` switch the grid off;
 3. a cap: a cloud still above ``max_points`` is re-gridded with a coarser voxel
    (surfaces: points ~ 1 / voxel^2, so the size grows by sqrt(n / max_points)), at most three
    times, then thinned by a seeded random subsample;

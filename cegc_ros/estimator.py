@@ -100,7 +100,8 @@ class CompatibilityConfig:
     explore_seeds: int = 0            # extra seeds drawn at random among the other correspondences
     free_space: float = 0.0           # verification x exp(-free_space x violations); needs sensor-frame clouds
     sure_fitness: float = 1.01        # second pass (exploring seeds, free space) below this fitness of the first choice
-    sure_ambiguity: float = -1.0      # ... unless the choice's ambiguity is at most this (and its fitness >= sure_min_fitness)
+    # ... unless the choice's ambiguity is at most this (and its fitness >= sure_min_fitness)
+    sure_ambiguity: float = -1.0
     sure_min_fitness: float = 0.3
     sure_seeds: int = 0               # first try only this many of the strongest seeds; the rest when not sure (0: all)
 

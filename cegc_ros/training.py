@@ -646,7 +646,8 @@ class Trainer:
                     # best = highest recall, then lowest mean rotation error (stored negated-recall first)
                     score = -val["val_recall"] * 1000.0 + val["val_rre_mean"]
                     if self.rank == 0:      # every validated state, for the learning curve (tools/learning_curve.py)
-                        save_checkpoint(self.out / "snapshots" / f"step_{self.step:07d}.pt", self.model, self.metadata(val))
+                        save_checkpoint(self.out / "snapshots" / f"step_{self.step:07d}.pt", self.model,
+                                        self.metadata(val))
                     if score < self.best:
                         self.best = score
                         if self.rank == 0:
@@ -698,7 +699,8 @@ class Trainer:
     def metadata(self, val: dict[str, float]) -> dict[str, Any]:
         import platform
         return {"step": self.step, "elapsed_minutes": round(self.elapsed / 60, 2),
-                "pairs_seen": self.step + int(self.warm_start.get("pairs_seen", 0)), "device": self.device, "machine": platform.processor() or platform.machine(),
-                "torch": str(torch.__version__), "data": "synthetic different-view fragment pairs and 7scenes-protocol copies from procedural rooms",
+                "pairs_seen": self.step + int(self.warm_start.get("pairs_seen", 0)), "device": self.device,
+                "machine": platform.processor() or platform.machine(), "torch": str(torch.__version__),
+                "data": "synthetic different-view fragment pairs and 7scenes-protocol copies from procedural rooms",
                 "train_config": self.cfg.to_dict(), "validation": val, "warm_start": self.warm_start,
                 "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

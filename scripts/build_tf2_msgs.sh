@@ -15,7 +15,8 @@ PKG_UPPER=TF2_MSGS
 NICE=${NICE:-nice -n 10}
 T0=$(date +%s%N)
 
-case "$PY" in /*) ;; *) PY=$(command -v "$PY" || echo "$PWD/$PY");; esac  # do NOT resolve symlinks (venv python -> base python)
+# do NOT resolve symlinks (venv python -> base python)
+case "$PY" in /*) ;; *) PY=$(command -v "$PY" || echo "$PWD/$PY");; esac
 mkdir -p "$PREFIX"; PREFIX=$(cd "$PREFIX" && pwd)
 # venv prefix (sys.prefix), python version, include dirs
 read -r VENV PYVER PYINC NPINC EXT_SUFFIX < <(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c '
@@ -116,7 +117,8 @@ open(f'{gen}/rosidl_generator_py/{pkg}/__init__.py', 'a').close()
 PYEOF
 
 # visibility headers (cmake configure_file equivalents)
-vis() { sed -e "s/@PROJECT_NAME@/$PKG/g" -e "s/@PROJECT_NAME_UPPER@/$PKG_UPPER/g" "$VSHARE/$1/resource/$1__visibility_control.h.in" > "$GEN/$1/$PKG/msg/$1__visibility_control.h"; }
+vis() { sed -e "s/@PROJECT_NAME@/$PKG/g" -e "s/@PROJECT_NAME_UPPER@/$PKG_UPPER/g" \
+              "$VSHARE/$1/resource/$1__visibility_control.h.in" > "$GEN/$1/$PKG/msg/$1__visibility_control.h"; }
 vis rosidl_generator_c
 vis rosidl_typesupport_introspection_c
 vis rosidl_typesupport_fastrtps_c
@@ -141,7 +143,8 @@ I=$GEN/rosidl_typesupport_introspection_c/$PKG/msg/detail
 cc "$L/lib${PKG}__rosidl_typesupport_introspection_c.so" -DROSIDL_TYPESUPPORT_INTROSPECTION_C_BUILDING_DLL_$PKG \
    $I/tf_message__type_support.c "${LDF[@]}" -l${PKG}__rosidl_generator_c \
    $(dl rosidl_typesupport_introspection_c) $(dl rosidl_generator_c) \
-   -lrosidl_typesupport_introspection_c -lrosidl_runtime_c -lrcutils -o "$L/lib${PKG}__rosidl_typesupport_introspection_c.so"
+   -lrosidl_typesupport_introspection_c -lrosidl_runtime_c -lrcutils \
+   -o "$L/lib${PKG}__rosidl_typesupport_introspection_c.so"
 F=$GEN/rosidl_typesupport_fastrtps_c/$PKG/msg/detail
 cxx "$L/lib${PKG}__rosidl_typesupport_fastrtps_c.so" -DROSIDL_TYPESUPPORT_FASTRTPS_C_BUILDING_DLL_$PKG \
    $F/tf_message__type_support_c.cpp "${LDF[@]}" -l${PKG}__rosidl_generator_c \

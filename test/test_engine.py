@@ -293,7 +293,9 @@ def test_non_finite_network_output_is_an_error_naming_the_runtime(tiny_checkpoin
     monkeypatch.setattr(reg.model, "score_candidates", broken)
     src = scene(1000, seed=4)
     tgt = src @ euler_z(15).T + [0.1, 0.2, 0.0]
-    with pytest.raises(NetworkOutputError, match=r"network \(torch\) returned non-finite values: (\d+) of \d+ candidate confidences") as err:
+    with pytest.raises(NetworkOutputError,
+                       match=(r"network \(torch\) returned non-finite values: "
+                              r"(\d+) of \d+ candidate confidences")) as err:
         reg.register(src, tgt)
     # every source point's first 3 of its learned + FPFH candidates, counted before selection
     n_bad, n_all = map(int, err.value.args[0].split("values: ")[1].split(" candidate")[0].split(" of "))

@@ -26,7 +26,8 @@ def test_each_part_of_a_concatenation_and_each_head_keeps_its_first_channels():
     assert not any(k.startswith("context.self_blocks.1.") for k in cut)   # the block it lacks
     r = lambda a, b: list(range(a, b))                    # noqa: E731
     # AGNN layer 3's edges [f_i, f_j - f_i] of layer 2's 16 (teacher) / 12 (student) channels
-    assert torch.equal(cut["agnn.layers.2.embed.0.weight"], t["agnn.layers.2.embed.0.weight"][:16][:, r(0, 12) + r(16, 28)])
+    assert torch.equal(cut["agnn.layers.2.embed.0.weight"],
+                       t["agnn.layers.2.embed.0.weight"][:16][:, r(0, 12) + r(16, 28)])
     # layer 1's edges [ppf, fpfh]: its inputs are the teacher's, its outputs the first 8
     assert torch.equal(cut["agnn.layers.0.embed.0.weight"], t["agnn.layers.0.embed.0.weight"][:8])
     # the head on the three layers' outputs 16 + 16 + 32 -> 8 + 12 + 16
@@ -37,7 +38,8 @@ def test_each_part_of_a_concatenation_and_each_head_keeps_its_first_channels():
         w = f"context.cross_blocks.0.{name}.weight"
         assert torch.equal(cut[w], t[w][heads][:, :48])
         assert torch.equal(cut[f"context.cross_blocks.0.{name}.bias"], t[f"context.cross_blocks.0.{name}.bias"][heads])
-    assert torch.equal(cut["context.self_blocks.0.merge.weight"], t["context.self_blocks.0.merge.weight"][:48][:, heads])
+    assert torch.equal(cut["context.self_blocks.0.merge.weight"],
+                       t["context.self_blocks.0.merge.weight"][:48][:, heads])
     # an attention block's update on [x, message]
     assert torch.equal(cut["context.self_blocks.0.update.0.weight"],
                        t["context.self_blocks.0.update.0.weight"][:48][:, r(0, 48) + r(64, 112)])

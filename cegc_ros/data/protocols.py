@@ -173,9 +173,10 @@ def sample_7scenes_pair(points: np.ndarray, rng: np.random.Generator, num_points
     +-max_angle_deg) and translation (uniform in +-max_translation per axis). With
     ``resample_target`` the target crops its own independent draw of the fragment (no exact
     point-to-point correspondences); ``noise_sigma`` (normalised units) adds Gaussian noise,
-    clipped at 5 sigma, to each cloud independently. Point order is shuffled. Returns source (K, 3), target (K, 3) float32,
-    K = round(keep_ratio * num_points), in normalised units; info has ``scale`` (metres per unit)
-    and ``centre`` so metric errors can be recovered, and ``overlap``.
+    clipped at 5 sigma, to each cloud independently. Point order is shuffled. Returns source
+    (K, 3), target (K, 3) float32, K = round(keep_ratio * num_points), in normalised units;
+    info has ``scale`` (metres per unit) and ``centre`` so metric errors can be recovered, and
+    ``overlap``.
     """
     pts, centre, scale = normalise_unit_box(np.asarray(points, dtype=np.float32))
     keep = int(round(keep_ratio * num_points))

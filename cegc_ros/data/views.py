@@ -13,8 +13,9 @@ of furniture or a random point of the room) and looking at it, then drifting (up
 and turning (up to 30 deg/s). The fragments of a room share two or three focuses, so some look
 at the same things from different sides (high overlap under a large rotation) and some look
 elsewhere (low or no overlap). With ``wall_views`` > 0, that share of the focuses is a point on
-a wall (:func:`_wall_focus`), so those fragments overlap on the room's large planes. A LiDAR fragment is a robot (0.3-1.0 m) or backpack (1.4-2.0 m)
-path of ``sweeps`` sweeps at a free floor point, moving up to 1 m/s with any heading.
+a wall (:func:`_wall_focus`), so those fragments overlap on the room's large planes. A LiDAR
+fragment is a robot (0.3-1.0 m) or backpack (1.4-2.0 m) path of ``sweeps`` sweeps at a free
+floor point, moving up to 1 m/s with any heading.
 
 Ground truth and overlap. ``T_target_source = inv(T_world_target) @ T_world_source`` maps source
 points into the target frame. ``overlap`` is the fraction of source points with a target point

@@ -37,7 +37,8 @@ def _check(teacher: ModelConfig, student: ModelConfig) -> None:
                                  f"against {getattr(teacher, name)!r})")
     wider = [f"{n} {getattr(student, n)} > {getattr(teacher, n)}" for n in ("feat_dim", "cams_dim", "attn_layers")
              if getattr(student, n) > getattr(teacher, n)]
-    wider += [f"agnn_dims[{i}] {s} > {t}" for i, (s, t) in enumerate(zip(student.agnn_dims, teacher.agnn_dims)) if s > t]
+    wider += [f"agnn_dims[{i}] {s} > {t}" for i, (s, t) in enumerate(zip(student.agnn_dims, teacher.agnn_dims))
+              if s > t]
     if wider:
         raise NarrowingError(f"the student is wider than the teacher: {', '.join(wider)}")
     if student.feat_dim % student.attn_heads:

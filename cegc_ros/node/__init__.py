@@ -27,9 +27,10 @@ the node with one ``[FATAL]`` line and exit code 1. docs/node.md has the details
 
 Modules: ``params`` (parameters from cegc_ros.config), ``support`` (mailbox, throttled log),
 ``stats`` (counters), ``pairs_mode`` (the pairing mode), ``sequential_mode`` (keyframe
-odometry), ``engine_process`` (the engine in a child process), ``worker`` (the thread that feeds it), ``ros_node`` (rclpy), ``main``; ``lifecycle_node`` and
-``lifecycle_main`` (the managed node, ``register_lifecycle_node``).
-This package imports no rclpy and no torch until a node is built, so ``--help`` is instant.
+odometry), ``engine_process`` (the engine in a child process), ``worker`` (the thread that
+feeds it), ``ros_node`` (rclpy), ``main``; ``lifecycle_node`` and ``lifecycle_main`` (the
+managed node, ``register_lifecycle_node``). This package imports no rclpy and no torch until
+a node is built, so ``--help`` is instant.
 """
 
 from __future__ import annotations

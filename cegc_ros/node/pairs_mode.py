@@ -5,9 +5,9 @@ it names the topics it reads (``inputs``: side -> relative topic), takes each me
 (:meth:`offer`), says what it produced (an :class:`Offer`: a job and/or clouds it gave up
 on) and hears about each result (:meth:`on_result`); it adds its own outputs
 (:meth:`create_outputs`), builds the worker that runs its jobs (:meth:`make_worker`) and its
-/diagnostics key-values (:meth:`diagnostics`). cegc_ros/node/sequential_mode.py is the other. The node does the rest (counting,
-the mailbox, the engine, publishing), so another mode sits beside this one without a branch
-through the node.
+/diagnostics key-values (:meth:`diagnostics`). cegc_ros/node/sequential_mode.py is the
+other. The node does the rest (counting, the mailbox, the engine, publishing), so another
+mode sits beside this one without a branch through the node.
 """
 
 from __future__ import annotations

@@ -148,8 +148,9 @@ def point_to_plane_covariance(rotated: np.ndarray, normals: np.ndarray,
 
     With the residual ``r_i = n_i . (exp(phi) R p_i + t + dt - q_i)``, the Jacobian is
     ``[n_i, (R p_i) x n_i]`` (``rotated`` = R p_i, (M, 3)); covariance ``sigma^2 (J^T J)^-1``
-    with ``sigma^2`` the residual variance. Unconstrained directions (fewer than 6 matches, a singular Hessian: a plane, a
-    corridor) get :data:`~cegc_ros.refine.UNCONSTRAINED_VARIANCE` (cegc_ros.refine.covariance_from_information).
+    with ``sigma^2`` the residual variance. Unconstrained directions (fewer than 6 matches, a
+    singular Hessian: a plane, a corridor) get :data:`~cegc_ros.refine.UNCONSTRAINED_VARIANCE`
+    (cegc_ros.refine.covariance_from_information).
     """
     m = len(residuals)
     if m <= 6:

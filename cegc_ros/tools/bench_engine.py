@@ -16,17 +16,17 @@ the LiDAR pair), labelled by the folder's name.
 
 Each (size, allocator, method) runs in a fresh subprocess, so that its peak resident memory
 (``ru_maxrss``) is its own: one loaded pair at a time (as a node holds it), torch, Open3D and
-the registrations together. One
-cold registration (the process's first, after ``Registrar.from_checkpoint``: the table's "first
-call" column, and its ratio to the same pair warm), then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the
-90th percentile (``RegistrationResult.timings`` has one key per stage; the peers report
-features / registration), and the process's CPU time per registration (all threads; on a
-loaded machine the wall time grows with the load, the CPU time much less). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap does
-(cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the machine's
-load; ``--json`` keeps every number. ``--threads N`` sets OMP_NUM_THREADS=N in the workers
-(torch and Open3D; 0 keeps the libraries' defaults, as the node does with ``engine.threads: 0``).
-``--params FILE`` runs the engine with another register_node parameter file (a setting's cost
-beside the same peers); its path goes in the printed command.
+the registrations together. One cold registration (the process's first, after
+``Registrar.from_checkpoint``: the table's "first call" column, and its ratio to the same pair
+warm), then ``--pairs`` x ``--repeats`` timed ones; per stage the median and the 90th percentile
+(``RegistrationResult.timings`` has one key per stage; the peers report features / registration),
+and the process's CPU time per registration (all threads; on a loaded machine the wall time grows
+with the load, the CPU time much less). ``jemalloc`` preloads libjemalloc.so.2 as the bootstrap
+does (cegc_ros/allocator.py); ``system`` is glibc malloc. Prints a markdown table and the
+machine's load; ``--json`` keeps every number. ``--threads N`` sets OMP_NUM_THREADS=N in the
+workers (torch and Open3D; 0 keeps the libraries' defaults, as the node does with
+``engine.threads: 0``). ``--params FILE`` runs the engine with another register_node parameter
+file (a setting's cost beside the same peers); its path goes in the printed command.
 """
 
 from __future__ import annotations

@@ -114,7 +114,8 @@ def _compare_compile() -> int:
     print("| engine.compile | start-up compile s | median ms, first network answers | median ms, both networks |")
     print("|---|---|---|---|")
     for r in rows:
-        print(f"| {str(r['compile']).lower()} | {r['start_up_compile_s']} | {r['shared_point_ms']} | {r['cascade_ms']} |")
+        print(f"| {str(r['compile']).lower()} | {r['start_up_compile_s']} | {r['shared_point_ms']} "
+              f"| {r['cascade_ms']} |")
     return 0
 
 

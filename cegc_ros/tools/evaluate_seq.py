@@ -18,7 +18,8 @@ Methods: ``cegc`` (keyframe odometry, CEGC global registration when ICP tracking
 ``icp-only`` (the same without global registration: what CEGC adds) and ``kiss-icp``
 (KISS-ICP 1.x ``KissICP.register_frame`` with ``deskew`` off, ``max_range`` from
 ``sequential.max_range`` (else ``--kiss-max-range``) and the voxel grid our odometry uses
-(``sequential.voxel_size`` or the one derived from the first cloud); skipped, with the reason, when the package is not installed).
+(``sequential.voxel_size`` or the one derived from the first cloud); skipped, with the reason,
+when the package is not installed).
 
 Metrics (:mod:`cegc_ros.sequential.metrics`): ATE from the first frame and after SE(3)
 alignment, RPE (translation %, deg/m) per ``--rpe-lengths``, consecutive-frame errors,

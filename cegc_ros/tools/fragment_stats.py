@@ -184,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = OneLineParser(prog="fragment_stats", description=__doc__.splitlines()[0])
     ap.add_argument("cache", type=Path, help="a pair cache (cegc-make-pairs); its Kinect different-view pairs")
     ap.add_argument("--pairs", type=int, default=60, help="evenly spaced synthetic pairs")
-    ap.add_argument("--real-dir", type=Path, default=None, help="real pairs to report beside them (cegc-eval --real-dir layout)")
+    ap.add_argument("--real-dir", type=Path, default=None,
+                    help="real pairs to report beside them (cegc-eval --real-dir layout)")
     ap.add_argument("--smooth", type=int, default=0, metavar="K",
                     help="what-if: project the synthetic clouds onto their K-neighbour planes "
                          "(smooth_surface) before measuring; 0: as generated")

@@ -4,11 +4,12 @@
         runs/views/best.pt --pairs 40
 
 The engine at node defaults (each checkpoint in turn) on ``--pairs`` evenly spaced Kinect
-(``--sensor lidar``: LiDAR) different-view pairs of a validation pair cache (``cegc-make-pairs --split val``; rooms never
-trained on, never real data). Prints one line per checkpoint: recall at 15 deg / 0.3 m, on the
-pairs under and over 30% overlap, median seconds per pair. This is how the shipped weights are
-chosen (docs/model_card.md). ``--set key=value`` overrides an engine / preprocess setting
-(``engine.candidates=learned``, ``preprocess.support_points=4096``) for choosing settings;
+(``--sensor lidar``: LiDAR) different-view pairs of a validation pair cache
+(``cegc-make-pairs --split val``; rooms never trained on, never real data). Prints one line per
+checkpoint: recall at 15 deg / 0.3 m, on the pairs under and over 30% overlap, median seconds per
+pair. This is how the shipped weights are chosen (docs/model_card.md). ``--set key=value``
+overrides an engine / preprocess setting (``engine.candidates=learned``,
+``preprocess.support_points=4096``) for choosing settings;
 ``--points N`` thins every cloud to N points first (a sparser sensor);
 ``--peers sc2pcr+icp,ransac+icp`` adds classical peers (cegc_ros/baselines.py) on the same pairs.
 The default ``engine.verify_score: learned`` uses weights fitted to the shipped network; compare
@@ -130,9 +131,10 @@ def pose_evidence(T_result: np.ndarray, source: np.ndarray, target: np.ndarray, 
     """Can the geometry alone tell the ground truth T (4, 4) from the answer T_result? The truth
     is refined by the engine's ICP (``eng``: EngineConfig; the answer is the engine's, already
     refined) and each pose is scored by the geometric part of the estimator's verification
-    (fitness x free space, without the correspondence count), but on the pair's full clouds (source, target: (N, 3), (M, 3) metres, each in its sensor's frame): the
-    share of (at most ``max_points``, seeded) source points within the ICP distance of a target
-    point, times exp(-eng.free_space x the share put where the other sensor saw through,
+    (fitness x free space, without the correspondence count), but on the pair's full clouds
+    (source, target: (N, 3), (M, 3) metres, each in its sensor's frame): the share of (at most
+    ``max_points``, seeded) source points within the ICP distance of a target point, times
+    exp(-eng.free_space x the share put where the other sensor saw through,
     cegc_ros/visibility.py). ``gt_evidence`` and ``result_evidence``; a wrong answer with more
     evidence than the ground truth is a pair the geometry cannot settle (no verification picks
     the truth there), one with less a miss that better hypotheses or verification could fix."""
