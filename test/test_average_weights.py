@@ -14,7 +14,7 @@ def _snapshots(folder, steps, **cfg):
     for i, step in enumerate(steps):
         torch.manual_seed(i)
         model = CEGC(ModelConfig(**{**SMALL, **cfg}))
-        save_checkpoint(folder / f"step_{step:07d}.pt", model, {"step": step})
+        save_checkpoint(folder / f"step_{step:07d}.pt", model, {"step": step, "validation": {"val_recall": 0.5}})
         models.append(model)
     return models
 
@@ -32,6 +32,7 @@ def test_average_is_the_mean_of_the_snapshots_in_the_range(tmp_path, capsys):
     for k, v in avg.state_dict().items():                           # ... the output is their mean
         torch.testing.assert_close(v, (a[k] + b[k]) / 2, rtol=0, atol=1e-6)
     assert meta["step"] == 600 and meta["averaged"]["steps"] == [300, 600]
+    assert "validation" not in meta                                 # the last snapshot's, not the mean's
 
 
 def test_bad_input_is_one_line_and_exit_1(tmp_path, capsys):

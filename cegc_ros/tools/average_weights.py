@@ -11,8 +11,9 @@ the validation pairs (docs/training.md, "How a checkpoint is chosen").
 
 Every snapshot in the step range (``step_*.pt``, written by cegc-train at each validation) is
 read as the engine reads weights (``engine.load_checkpoint``); they must share one model
-configuration. The output keeps the last snapshot's metadata with ``averaged`` added (the
-snapshots' steps), so the model card can say what was averaged.
+configuration. The output keeps the last snapshot's metadata (less its validation figures, which
+are not the average's) with ``averaged`` added (the snapshots' steps), so the model card can say
+what was averaged.
 """
 
 from __future__ import annotations
@@ -74,8 +75,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--steps {args.steps!r}: expected FIRST:LAST, two step numbers") from None
         found = snapshots(args.snapshots, first, last)
         model, meta = average([p for _, p in found])
-        meta = dict(meta, averaged={"snapshots": len(found), "steps": [s for s, _ in found],
-                                    "folder": str(args.snapshots)})
+        # the last snapshot's own validation figures are not the average's: dropped
+        meta = {k: v for k, v in meta.items() if k != "validation"}
+        meta["averaged"] = {"snapshots": len(found), "steps": [s for s, _ in found], "folder": str(args.snapshots)}
         save_checkpoint(args.out, model, meta)
         print(f"average_weights: {len(found)} snapshots, steps {found[0][0]}-{found[-1][0]}; wrote {args.out}")
     except (OSError, ValueError, CheckpointError) as err:
