@@ -9,7 +9,8 @@ the same bounded work afterwards).
    drivers write for a pixel without a return), and points nearer than
    ``preprocess.min_range`` or farther than ``preprocess.max_range`` from the cloud frame's
    origin (0 = no limit); ValueError naming the cloud when too few are left;
-2. a voxel grid (mean point per voxel, Open3D's hash grid: one pass). Its size is
+2. a voxel grid (mean point per voxel, :func:`cegc_ros.geometry.grid_means`: Open3D's voxels
+   and means, in the voxels' index order; one pass). Its size is
    ``preprocess.voxel_size`` metres when set, otherwise adaptive: ``preprocess.voxel_ratio`` x
    the larger of the two clouds' robust extents (:func:`robust_extent`: the largest side of the
    box that holds all but :data:`EXTENT_TRIM` of the points on each side of each axis, so that
@@ -39,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PreprocessConfig
-from .geometry import checked_cloud, column_max, column_min, use_table, voxel_downsample
+from .geometry import checked_cloud, column_max, column_min, grid_means, use_table
 
 
 @dataclass
@@ -228,7 +229,7 @@ def cap_points(points: np.ndarray, voxel: float, max_points: int, rng: np.random
         if len(points) <= max_points or voxel <= 0:
             break
         voxel *= 1.05 * np.sqrt(len(points) / max_points)
-        points = voxel_downsample(points, voxel).astype(np.float64)
+        points = grid_means(points, voxel).astype(np.float64)
     if len(points) > max_points:
         points = points[np.sort(rng.choice(len(points), max_points, replace=False))]
     return points
@@ -252,7 +253,7 @@ def bound_pair(source_xyz: object, target_xyz: object, cfg: PreprocessConfig,
                min_points: int) -> BoundedPair:
     """Input hygiene, voxel grid and cap for both clouds; ValueError on unusable input."""
     # Memory: one clean copy of each cloud (its input dtype); a 5M-point pair peaks at the
-    # inputs + their copies + Open3D's grid of one cloud.
+    # inputs + their copies + the grid's index arrays of one cloud (about 50 bytes a point).
     clean = [_usable(name, xyz, cfg, min_points)
              for name, xyz in (("source", source_xyz), ("target", target_xyz))]
     surveys = [_survey(c, None, cfg.seed) for c, _ in clean]
@@ -262,7 +263,7 @@ def bound_pair(source_xyz: object, target_xyz: object, cfg: PreprocessConfig,
     out = []
     for name, (cloud, dropped), (_, strays) in zip(("source", "target"), clean, surveys):
         if voxel > 0:
-            cloud = voxel_downsample(cloud, voxel)
+            cloud = grid_means(cloud, voxel)
         cloud = cap_points(np.asarray(cloud, np.float64), voxel, cfg.max_points, rng)
         if strays >= STRAY_TRIGGER:
             cloud, dropped.isolated = drop_isolated(cloud, cfg.seed)

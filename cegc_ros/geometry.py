@@ -99,6 +99,50 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return np.asarray(pcd.voxel_down_sample(voxel).points, np.float32)
 
 
+def grid_means(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Mean point per occupied voxel, as :func:`voxel_downsample` (Open3D's grid: the same
+    voxels, origin half a voxel below the minimum, and the same means, summed in float64 in
+    the points' order), but in the voxels' index order, x-major, instead of the order of
+    Open3D's hash map; (N, 3) -> (K, 3) float32, voxel <= 0 returns the input.
+
+    The bound stage's grid (cegc_ros/bounding.py): one table count and three weighted counts
+    instead of a hash map, 2x faster on 300k-point clouds (about 16 against 30 ms on the AVX2
+    EPYC, docs/performance.md), and an order that no library's hashing decides. The data
+    generator keeps :func:`voxel_downsample` (its caches and bags stay as they were)."""
+    if voxel <= 0:
+        return np.asarray(points, np.float32)
+    p = np.asarray(points)
+    n = len(p)
+    if n == 0:
+        return np.zeros((0, 3), np.float32)
+    origin = column_min(p).astype(np.float64) - 0.5 * voxel
+    key = np.empty((n, 3), np.int64)
+    for k in range(3):                        # column by column: 2x faster than on (N, 3)
+        c = p[:, k].astype(np.float64)
+        c -= origin[k]
+        c /= voxel
+        key[:, k] = np.floor(c, out=c)
+    dims = key[:, 0].max() + 1, key[:, 1].max() + 1, key[:, 2].max() + 1
+    cells = float(dims[0]) * float(dims[1]) * float(dims[2])
+    if cells < 2.0 ** 62:
+        ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        if use_table(cells, n):               # a table of every cell, no sorting
+            count = np.bincount(ids, minlength=int(cells))
+            occupied = count > 0
+            slot = (np.cumsum(occupied) - 1)[ids]                  # (N,) voxel of each point
+            count = count[occupied]
+        else:
+            _, slot, count = np.unique(ids, return_inverse=True, return_counts=True)
+    else:                                     # a huge extent for the voxel: rows as keys
+        _, slot, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    slot = slot.reshape(-1)
+    out = np.empty((len(count), 3), np.float64)
+    for k in range(3):
+        out[:, k] = np.bincount(slot, weights=p[:, k], minlength=len(count))
+    out /= count[:, None]
+    return out.astype(np.float32)
+
+
 def box_corner(points_per_face: int, seed: int = 0) -> np.ndarray:
     """(3 * points_per_face, 3) float64: three faces of the unit cube that meet at the origin,
     uniformly drawn (seeded). The warm-up cloud of ``Registrar.warm_start`` and

@@ -218,3 +218,28 @@ def test_crowded_cells_count_the_same_by_table_or_by_sort(case):
         want = counts[inverse] >= at_least
         got = _crowded_cells(pts, cell, at_least)
         assert np.array_equal(got, want) and 0 < want.sum() < len(pts)
+
+
+@pytest.mark.parametrize("case", ["dense", "sparse_box", "huge_extent"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_bound_grid_has_open3ds_voxels_and_means_in_index_order(case, dtype):
+    """geometry.grid_means (the bound stage's grid) gives exactly the points of Open3D's
+    voxel_down_sample (geometry.voxel_downsample), by each of its three ways of counting (a
+    table, np.unique of cell ids, np.unique of index rows when ids would overflow), ordered by
+    voxel index: x, then y, then z."""
+    from cegc_ros.geometry import grid_means, voxel_downsample
+    rng = np.random.default_rng(11)
+    pts, voxel = {"dense": (_room(20000, 3), 0.05),
+                  "sparse_box": (np.repeat(rng.uniform(0, 80, (1000, 3)) * [1, 1, 0.04], 3, axis=0)
+                                 + rng.normal(0, 0.02, (3000, 3)), 0.3),          # returns in clumps
+                  "huge_extent": (np.r_[rng.uniform(0, 1, (2000, 3)), [[9e5, 9e5, 9e5]]], 0.1)}[case]
+    pts = pts.astype(dtype)
+    got, want = grid_means(pts, voxel), voxel_downsample(pts, voxel)
+    assert got.dtype == np.float32 and got.shape == want.shape and len(got) < 0.8 * len(pts)
+    sort = lambda a: a[np.lexsort(a.T[::-1])]  # noqa: E731
+    np.testing.assert_array_equal(sort(got), sort(want))
+    origin = pts.astype(np.float64).min(0) - 0.5 * voxel
+    index = np.floor((got.astype(np.float64) - origin) / voxel).astype(np.int64)   # each mean's voxel
+    assert len(np.unique(index, axis=0)) == len(got)
+    assert np.array_equal(np.lexsort(index.T[::-1]), np.arange(len(got)))        # in index order
+    np.testing.assert_array_equal(grid_means(pts, 0.0), pts.astype(np.float32))
