@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PreprocessConfig
-from .geometry import checked_cloud, column_max, column_min, grid_means, use_table
+from .geometry import cell_ids, checked_cloud, column_max, column_min, grid_means, use_table
 
 
 @dataclass
@@ -162,10 +162,10 @@ def _crowded_cells(points: np.ndarray, cell: float, at_least: int, shift: float 
     lo = column_min(points) - shift * cell
     key = np.floor((points - lo) / cell).astype(np.int64)
     dims = np.floor((column_max(points) - lo) / cell).astype(np.int64) + 1   # = key.max(0) + 1
-    cells = float(dims[0]) * float(dims[1]) * float(dims[2])
-    if cells >= 2.0 ** 62:                                  # ids would overflow
+    grid = cell_ids(key, dims)
+    if grid is None:                                        # ids would overflow
         return np.zeros(len(points), bool)
-    ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    ids, cells = grid
     if use_table(cells, len(ids)):                          # a table of every cell, no sorting
         return np.bincount(ids, minlength=int(cells))[ids] >= at_least
     _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)

@@ -105,43 +105,58 @@ def grid_means(points: np.ndarray, voxel: float) -> np.ndarray:
     the points' order), but in the voxels' index order, x-major, instead of the order of
     Open3D's hash map; (N, 3) -> (K, 3) float32, voxel <= 0 returns the input.
 
-    The bound stage's grid (cegc_ros/bounding.py): one table count and three weighted counts
-    instead of a hash map, faster on large clouds (300k points about 14 against 23-30 ms, 5M
-    points 0.9 against 4.0 s on the AVX2 EPYC, docs/performance.md), and an order that no
-    library's hashing decides. The data generator and the classical peers keep
-    :func:`voxel_downsample` (the caches and bags stay as they were)."""
+    The bound stage's grid (cegc_ros/bounding.py): :func:`voxel_means` instead of a hash map,
+    faster on large clouds (300k points about 14 against 23-30 ms, 5M points 0.9 against 4.0 s
+    on the AVX2 EPYC, docs/performance.md), and an order that no library's hashing decides. The
+    classical peers keep :func:`voxel_downsample`; the data generator its own grid
+    (cegc_ros/data/scenes.py), so the caches and bags stay as they were."""
     if voxel <= 0:
         return np.asarray(points, np.float32)
     p = np.asarray(points)
-    n = len(p)
-    if n == 0:
+    if len(p) == 0:
         return np.zeros((0, 3), np.float32)
     origin = column_min(p).astype(np.float64) - 0.5 * voxel
-    key = np.empty((n, 3), np.int64)
+    key = np.empty((len(p), 3), np.int64)
     for k in range(3):                        # column by column: 2x faster than on (N, 3)
         c = p[:, k].astype(np.float64)
         c -= origin[k]
         c /= voxel
         key[:, k] = np.floor(c, out=c)
-    dims = key[:, 0].max() + 1, key[:, 1].max() + 1, key[:, 2].max() + 1
+    return voxel_means(p, key).astype(np.float32)
+
+
+def cell_ids(key: np.ndarray, dims: Any) -> tuple[np.ndarray, float] | None:
+    """(N, 3) int64 cell indices, each column in [0, dims[k]) -> ((N,) int64 ids, x-major, and
+    the grid's number of cells), or None when the ids would overflow int64."""
     cells = float(dims[0]) * float(dims[1]) * float(dims[2])
-    if cells < 2.0 ** 62:
-        ids = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-        if use_table(cells, n):               # a table of every cell, no sorting
-            count = np.bincount(ids, minlength=int(cells))
-            occupied = count > 0
-            slot = (np.cumsum(occupied) - 1)[ids]                  # (N,) voxel of each point
-            count = count[occupied]
-        else:
-            _, slot, count = np.unique(ids, return_inverse=True, return_counts=True)
-    else:                                     # a huge extent for the voxel: rows as keys
+    if cells >= 2.0 ** 62:
+        return None
+    return (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], cells
+
+
+def voxel_means(points: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """(N, 3) points and their (N, 3) int64 voxel indices (>= 0) -> (K, 3) float64: the mean
+    point of each occupied voxel, in the voxels' index order (x, then y, then z), summed in
+    float64 in the points' order. Occupied voxels are counted by a table when it is small
+    (:func:`use_table`), else by np.unique of the cell ids, or of the index rows when the ids
+    would overflow."""
+    dims = key[:, 0].max() + 1, key[:, 1].max() + 1, key[:, 2].max() + 1
+    grid = cell_ids(key, dims)
+    if grid is None:                          # a huge extent for the voxel: rows as keys
         _, slot, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    elif use_table(grid[1], len(key)):        # a table of every cell, no sorting
+        count = np.bincount(grid[0], minlength=int(grid[1]))
+        occupied = count > 0
+        slot = (np.cumsum(occupied) - 1)[grid[0]]                 # (N,) voxel of each point
+        count = count[occupied]
+    else:
+        _, slot, count = np.unique(grid[0], return_inverse=True, return_counts=True)
     slot = slot.reshape(-1)
     out = np.empty((len(count), 3), np.float64)
     for k in range(3):
-        out[:, k] = np.bincount(slot, weights=p[:, k], minlength=len(count))
+        out[:, k] = np.bincount(slot, weights=points[:, k], minlength=len(count))
     out /= count[:, None]
-    return out.astype(np.float32)
+    return out
 
 
 def box_corner(points_per_face: int, seed: int = 0) -> np.ndarray:

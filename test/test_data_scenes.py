@@ -109,6 +109,20 @@ def test_voxel_downsample_averages_per_voxel():
     np.testing.assert_allclose(out, [[0.015, 0.015, 0.015], [0.3, 0.3, 0.3]], atol=1e-7)
 
 
+def test_voxel_downsample_keeps_voxels_apart_when_their_ids_would_overflow():
+    """A cloud spanning 9e5 m at 0.1 m voxels: more cells than int64 ids can number, so the
+    voxels are told apart by their index rows; still one mean per voxel, in index order."""
+    rng = np.random.default_rng(5)
+    p = np.r_[rng.uniform(0, 1, (2000, 3)), [[9e5, 9e5, 9e5]]]
+    out = scenes.voxel_downsample(p, 0.1)
+    key = np.floor(p / 0.1).astype(np.int64)
+    voxels, inverse = np.unique(key, axis=0, return_inverse=True)      # sorted: x, then y, then z
+    want = np.stack([np.bincount(inverse.ravel(), weights=p[:, k]) for k in range(3)], 1)
+    want /= np.bincount(inverse.ravel())[:, None]
+    assert len(voxels) < 0.8 * len(p)
+    np.testing.assert_array_equal(out, want)
+
+
 def test_fragment_index_is_checked():
     with pytest.raises(ValueError, match="fragment index"):
         scenes.make_fragment(11, scenes.MAX_FRAGMENTS)

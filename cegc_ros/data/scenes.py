@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry import voxel_means
+
 # Kinect v1 disparity: baseline (m) and sub-pixel disparity resolution (1/8 px).
 _KINECT_BASELINE = 0.075
 _DISPARITY_STEP = 1.0 / 8.0
@@ -579,21 +581,16 @@ def render_depth(room: Room, T_world_camera: np.ndarray, rng: np.random.Generato
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Mean of the points in each occupied voxel, (N, 3) -> (M, 3), in sorted voxel order.
+    """Mean of the points in each occupied voxel, (N, 3) -> (M, 3) in the points' dtype, in
+    sorted voxel order (a grid aligned at the origin; cegc_ros.geometry.voxel_means).
 
-    Deterministic (numpy sort), unlike hash-map based implementations.
+    Deterministic, unlike hash-map based implementations.
     """
     if voxel_size <= 0 or len(points) == 0:
         return points
     key = np.floor(points / voxel_size).astype(np.int64)
     key -= key.min(0)
-    dims = key.max(0) + 1
-    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-    uniq, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    out = np.empty((len(uniq), 3), points.dtype)
-    for k in range(3):                      # float64 sums in input order: deterministic
-        out[:, k] = np.bincount(inv, weights=points[:, k], minlength=len(uniq)) / counts
-    return out
+    return voxel_means(points, key).astype(points.dtype, copy=False)
 
 
 @dataclass
