@@ -41,6 +41,7 @@ import numpy as np
 
 from .config import PreprocessConfig
 from .geometry import cell_ids, checked_cloud, column_max, column_min, grid_means, use_table
+from .parallel import both, query_workers
 
 
 @dataclass
@@ -90,16 +91,6 @@ class Dropped:
         return self.non_finite + self.no_return + self.out_of_range + self.isolated
 
 
-#: k-d-tree queries of more points than this use every core; smaller ones stay on one thread,
-#: where SciPy's per-call thread start-up costs more than it saves (2000 points: 1.5 ms on one
-#: thread, 3.9 ms on two beside a busy process; docs/performance.md).
-PARALLEL_QUERY_POINTS = 10000
-
-
-def _workers(n: int) -> int:
-    return -1 if n > PARALLEL_QUERY_POINTS else 1
-
-
 def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     """(N, 3) points -> those with at least ISOLATED_MIN_NEIGHBOURS others within their radius,
     and how many were dropped. The radius is ISOLATED_RADIUS x the median nearest-neighbour
@@ -112,7 +103,7 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
     probe = points
     if len(points) > SPACING_SAMPLE:
         probe = points[np.random.default_rng(seed).choice(len(points), SPACING_SAMPLE, replace=False)]
-    d, _ = tree.query(probe, k=2, workers=_workers(len(probe)))
+    d, _ = tree.query(probe, k=2, workers=query_workers(len(probe)))
     spacing = float(np.median(d[:, 1]))
     if not spacing > 0:                               # duplicates: nothing is isolated
         return points, 0
@@ -134,7 +125,7 @@ def drop_isolated(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int]:
         # The k-th nearest other point within the radius (k = ISOLATED_MIN_NEIGHBOURS; the first
         # neighbour found is the point itself): cheaper than counting the whole ball.
         far, _ = tree.query(points[doubt], k=ISOLATED_MIN_NEIGHBOURS + 1,
-                            workers=_workers(len(doubt)), distance_upper_bound=float(own.max()))
+                            workers=query_workers(len(doubt)), distance_upper_bound=float(own.max()))
         keep[doubt] = far[:, -1] < own
     return points[keep], int(len(points) - keep.sum())
 
@@ -249,27 +240,60 @@ def _usable(name: str, xyz: object, cfg: PreprocessConfig, min_points: int
     return cloud, dropped
 
 
+#: Pairs whose clouds both have between these many input points are bounded side by side on
+#: two threads: the stage's numpy grid and k-d trees release the GIL, so a 300k-point pair takes
+#: 49 instead of 63 ms idle, 79-87 instead of 123 beside two busy processes, the 70k-point LiDAR
+#: pair 29 instead of 43 (51 / 85); at 20k points it gains nothing idle, and at 1.5k points the
+#: threads' hand-offs cost 5 ms beside busy processes. Above the upper bound both clouds'
+#: grid arrays at once would cost more memory than the time is worth (a 5M-point pair: 0.6-0.75
+#: instead of 0.76-0.84 s, but a 975 instead of 637 MB peak; docs/performance.md).
+SIDE_BY_SIDE_POINTS = (50_000, 1_000_000)
+
+
+def _rows(xyz: object) -> int:
+    """Rows of an input cloud, 0 when it has no length (it fails the checks that follow)."""
+    try:
+        return len(xyz)                                     # type: ignore[arg-type]
+    except TypeError:
+        return 0
+
+
 def bound_pair(source_xyz: object, target_xyz: object, cfg: PreprocessConfig,
                min_points: int) -> BoundedPair:
-    """Input hygiene, voxel grid and cap for both clouds; ValueError on unusable input."""
+    """Input hygiene, voxel grid and cap for both clouds; ValueError on unusable input. When both
+    clouds' sizes are within :data:`SIDE_BY_SIDE_POINTS`, their hygiene, grids and stray
+    checks run side by side (:func:`cegc_ros.parallel.both`: the same answers and errors as one
+    after the other); the cap's seeded thinning takes them in turn, source first."""
     # Memory: one clean copy of each cloud (its input dtype); a 5M-point pair peaks at the
-    # inputs + their copies + the grid's index arrays of one cloud (about 50 bytes a point).
-    clean = [_usable(name, xyz, cfg, min_points)
-             for name, xyz in (("source", source_xyz), ("target", target_xyz))]
-    surveys = [_survey(c, None, cfg.seed) for c, _ in clean]
-    ext = max(e for e, _ in surveys)
+    # inputs + their copies + the grid's index arrays of one cloud (about 50 bytes a point;
+    # pairs above SIDE_BY_SIDE_POINTS[1] are bounded in turn for this).
+    def usable(named: tuple[str, object]) -> tuple[np.ndarray, Dropped, tuple[float, int]]:
+        cloud, dropped = _usable(named[0], named[1], cfg, min_points)
+        return cloud, dropped, _survey(cloud, None, cfg.seed)
+
+    rows = (_rows(source_xyz), _rows(target_xyz))
+    side = SIDE_BY_SIDE_POINTS[0] <= min(rows) and max(rows) <= SIDE_BY_SIDE_POINTS[1]
+    clean = both(usable, ("source", source_xyz), ("target", target_xyz), side)
+    ext = max(survey[0] for _, _, survey in clean)
     voxel = cfg.voxel_size if cfg.voxel_size > 0 else cfg.voxel_ratio * ext
+
+    def gridded(cloud: np.ndarray) -> np.ndarray:
+        return np.asarray(grid_means(cloud, voxel) if voxel > 0 else cloud, np.float64)
+
+    grids = both(gridded, clean[0][0], clean[1][0], side)
     rng = np.random.default_rng(cfg.seed)
-    out = []
-    for name, (cloud, dropped), (_, strays) in zip(("source", "target"), clean, surveys):
-        if voxel > 0:
-            cloud = grid_means(cloud, voxel)
-        cloud = cap_points(np.asarray(cloud, np.float64), voxel, cfg.max_points, rng)
-        if strays >= STRAY_TRIGGER:
-            cloud, dropped.isolated = drop_isolated(cloud, cfg.seed)
+    capped = [cap_points(cloud, voxel, cfg.max_points, rng) for cloud in grids]
+
+    def strays_dropped(which: int) -> tuple[np.ndarray, int]:
+        if clean[which][2][1] >= STRAY_TRIGGER:
+            return drop_isolated(capped[which], cfg.seed)
+        return capped[which], 0
+
+    out = both(strays_dropped, 0, 1, side)
+    for name, (cloud, isolated), (_, dropped, _) in zip(("source", "target"), out, clean):
+        dropped.isolated = isolated
         if len(cloud) < min_points:
             raise ValueError(f"{name} has {len(cloud)} points after the {voxel:.4g} m voxel grid, "
                              f"at least {min_points} are needed")
-        out.append(cloud)
-    return BoundedPair(out[0], out[1], float(voxel), (len(clean[0][0]), len(clean[1][0])),
+    return BoundedPair(out[0][0], out[1][0], float(voxel), (len(clean[0][0]), len(clean[1][0])),
                        (clean[0][1], clean[1][1]))
