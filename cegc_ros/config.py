@@ -110,11 +110,13 @@ class EngineConfig:
         "compatibility seeded by the confidences, SC2-PCR style) or 'svd' (the paper's "
         "confidence-weighted SVD over all of them). See cegc_ros/estimator.py.",
         choices=("compatibility", "svd")))
-    verify_hypotheses: int = field(default=100, metadata=_meta(
+    verify_hypotheses: int = field(default=150, metadata=_meta(
         "Distinct pose hypotheses of the compatibility estimator re-ranked by their count x "
         "verify_score (the learned features' agreement, or the geometric fitness: share of the "
         "network's source points that land near a target point); 0 ranks by the count alone, "
-        "as SC2-PCR. See cegc_ros/estimator.py.", 0, 1000))
+        "as SC2-PCR. 150 was chosen on synthetic validation pairs under the learned "
+        "verification: more low-overlap pairs than 100 for ~20 ms on the pairs in doubt "
+        "(docs/pipeline.md). See cegc_ros/estimator.py.", 0, 1000))
     verify_score: str = field(default="learned", metadata=_meta(
         "What the verification multiplies each hypothesis' count by: 'fitness' (the share of the "
         "network's source points that land near a target point) or 'features' (over those "
