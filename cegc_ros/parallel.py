@@ -66,9 +66,22 @@ def _worker() -> ThreadPoolExecutor:
         return _pool
 
 
+def _forget_pool() -> None:
+    """In a forked child: the parent's worker thread does not exist there, so work submitted to
+    the inherited pool would wait for ever; the child starts its own on first use."""
+    global _pool, _pool_lock
+    _pool = None
+    _pool_lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def both(fn: Callable[[A], R], first: A, second: A, side_by_side: bool = True) -> tuple[R, R]:
     """(fn(first), fn(second)), the second on a worker thread when ``side_by_side`` and this
-    process may use two cores or more, else one after the other. ``fn`` must not change state the other call reads.
+    process may use two cores or more, else one after the other. ``fn`` must not change state
+    the other call reads.
     An exception of the first call is raised (after the second has finished), else the second's.
     Called within a half (nested), both run on the calling thread."""
     if not side_by_side or cores() < 2 or _in_half():

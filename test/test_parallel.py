@@ -7,6 +7,7 @@ reporting two, whatever the machine has.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -78,6 +79,27 @@ def test_nested_halves_run_in_turn_and_kdtree_queries_stay_on_one_thread(two_cor
     assert w0 == w1 == 1
     assert parallel.query_workers(10 ** 6) == -1                # outside a half: every core
     assert parallel.query_workers(parallel.PARALLEL_QUERY_POINTS) == 1
+
+
+def _halves_in_a_forked_child(queue) -> None:
+    queue.put(parallel.both(lambda x: (x, threading.get_ident()), 1, 2))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_gets_its_own_worker_instead_of_the_parents(two_cores):
+    import multiprocessing
+    parallel.both(lambda x: x, 0, 1)                          # the parent's worker exists
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_halves_in_a_forked_child, args=(queue,))
+    child.start()
+    child.join(timeout=30)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    assert not alive, "both() in a forked child waited for the parent's worker thread"
+    (a, caller), (b, worker) = queue.get(timeout=10)
+    assert (a, b) == (1, 2) and caller != worker
 
 
 def _room_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
