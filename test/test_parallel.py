@@ -18,6 +18,7 @@ from cegc_ros import bounding, parallel
 from cegc_ros.bounding import bound_pair
 from cegc_ros.config import PreprocessConfig
 from cegc_ros.data.corruption import add_flying_pixels
+from test_input_hygiene import _room
 
 
 @pytest.fixture
@@ -103,17 +104,12 @@ def test_a_forked_child_gets_its_own_worker_instead_of_the_parents(two_cores):
 
 
 def _room_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    lo, hi = np.array([-1.0, -1.5, -1.2]), np.array([3.0, 1.5, 1.3])
-    faces = []
-    for axis, value in ((2, lo[2]), (0, hi[0]), (1, lo[1]), (1, hi[1]), (0, lo[0])):
-        p = rng.uniform(lo, hi, (n // 5, 3))
-        p[:, axis] = value
-        faces.append(p)
-    room = np.concatenate(faces)
-    source = add_flying_pixels(room, 0.02, np.random.default_rng(seed + 1))   # strays: the check runs
-    target = room[rng.permutation(len(room))[: int(0.8 * len(room))]] + [0.3, 0.1, 0.0]
-    return source, target
+    """test_input_hygiene's room: with 2% flying pixels as the source (the stray check runs), 80%
+    of its points moved by a known shift as the target."""
+    room = _room(n, seed)
+    source = add_flying_pixels(room, 0.02, np.random.default_rng(seed + 1))
+    keep = np.random.default_rng(seed + 2).permutation(len(room))[: int(0.8 * len(room))]
+    return source, room[keep] + [0.3, 0.1, 0.0]
 
 
 @pytest.mark.parametrize("settings", [{}, {"max_points": 3000},                  # coarser grids
