@@ -5,15 +5,17 @@ threads they are given. Where a stage does the same work on two clouds that do n
 each other (the bound stage's hygiene, grid and stray check of the source and of the target,
 cegc_ros/bounding.py), :func:`both` runs the second half on a worker thread while the calling
 thread runs the first: numpy's array loops and SciPy's k-d trees release the GIL, so the two
-halves share the two cores. The answers are the same as one after the other (the same calls on
-the same inputs; test_parallel), and so are the errors: the first half's is raised before the
-second's, as it would have been in turn.
+halves share the two cores. The verification's landing search (cegc_ros/refine.py,
+``_nearest``) splits its queries the same way. The answers are the same as one after the other
+(the same calls on the same inputs; test_parallel), and so are the errors: the first half's is
+raised before the second's, as it would have been in turn.
 
 Only where the halves are large: each hand-off costs a wake-up, and beside busy processes a
 wake-up waits for a time slice (docs/performance.md: the bound stage of 1.5k-point crops 10 ->
 15 ms beside two busy processes; the free-space check's two directions, ~1 ms each, gained
-nothing and were left in turn; the verification's landing search on SciPy's threads gained
-nothing idle and cost 60 ms at 300k points beside two busy processes, and was left on one).
+nothing and were left in turn). SciPy's own threads (``workers``) start at every call: the
+landing search on them gained nothing idle and cost 60 ms at 300k points beside two busy
+processes, where its halves on this module's one worker gain 7 ms idle and are level there.
 
 :func:`query_workers` is the rule for SciPy's own k-d-tree threads (``workers``)."""
 

@@ -160,3 +160,30 @@ def test_bound_pair_names_the_source_first_when_both_clouds_are_unusable(two_cor
         bound_pair(bad, bad, PreprocessConfig(), 16)
     with pytest.raises(ValueError, match=r"^target has 0 usable points"):
         bound_pair(_room_pair(5000, 0)[0], bad, PreprocessConfig(), 16)
+
+
+def test_the_landing_search_gives_the_same_answers_side_by_side(monkeypatch):
+    """refine._nearest (the verification's landing search) splits its queries between the two
+    cores from SIDE_BY_SIDE_QUERIES on: the same landed flags and target indices as in turn, on
+    poses of which some land and some do not, with the halves' split inside one pose."""
+    from scipy.spatial.transform import Rotation
+    from cegc_ros import refine
+    rng = np.random.default_rng(5)
+    target = rng.uniform(-1, 1, (512, 3))
+    source = target[rng.permutation(512)] + rng.normal(0, 0.01, (512, 3))
+    R = Rotation.random(41, random_state=6).as_matrix()
+    R[:20] = np.eye(3)
+    t = rng.normal(0, 0.02, (41, 3))
+    t[:20] *= 0.1                                                       # near the identity: these land
+    _one_core(monkeypatch)
+    near_turn, j_turn = refine._nearest(R, t, source, target, 0.03)
+    monkeypatch.setattr(parallel, "cores", lambda: 2)
+    threads = []
+    search = parallel.both
+    monkeypatch.setattr(parallel, "both", lambda fn, a, b, side: threads.append(side) or search(fn, a, b, side))
+    near_side, j_side = refine._nearest(R, t, source, target, 0.03)
+    assert threads == [True]                                           # 41 x 512 >= SIDE_BY_SIDE_QUERIES
+    assert np.array_equal(near_side, near_turn) and np.array_equal(j_side[near_side], j_turn[near_turn])
+    assert near_turn[:20].mean() > 0.9 and near_turn[20:].mean() < 0.5  # some land, some do not
+    refine._nearest(R[:2], t[:2], source, target, 0.03)
+    assert threads == [True, False]                                    # 2 poses: in turn
