@@ -238,10 +238,19 @@ def second_order_rows(hard: np.ndarray, rows: np.ndarray) -> np.ndarray:
     bits = np.packbits(hard, axis=1)
     bits = np.pad(bits, ((0, 0), (0, -bits.shape[1] % 8))).view(np.uint64)   # (K, ceil(K/64))
     out = np.zeros((len(rows), K), np.float32)
-    for i, r in enumerate(rows):
-        j = np.flatnonzero(hard[r])
-        out[i, j] = _popcount_rows(bits[j] & bits[r])
+    rows = np.asarray(rows, np.int64)
+    # SECOND_ORDER_CHUNK rows at a time: one pass over all their compatible pairs instead of a
+    # loop per row (a few ms less at the ~400 rows of a pair in doubt)
+    for a in range(0, len(rows), SECOND_ORDER_CHUNK):
+        chunk = rows[a:a + SECOND_ORDER_CHUNK]
+        i, j = np.nonzero(hard[chunk])                                     # pairs (chunk[i], j) with C = 1
+        out[a + i, j] = _popcount_rows(bits[j] & bits[chunk[i]])
     return out
+
+
+#: Rows of :func:`second_order_rows` counted in one pass (their pairs' words, ~25 x 8 bytes
+#: each, stay a few MB).
+SECOND_ORDER_CHUNK = 64
 
 
 #: Set bits of every byte value: the popcount where numpy has no bitwise_count (numpy < 2.0, as
