@@ -53,9 +53,14 @@ def _azimuth_elevation(x: np.ndarray, y: np.ndarray, sin_el: np.ndarray) -> tupl
     (docs/performance.md). Chunks of the estimator's check (8 poses x 3000 points) stay below
     torch's parallel grain, so no thread is woken for them."""
     import torch
-    az = torch.atan2(torch.from_numpy(np.asarray(y, np.float64)), torch.from_numpy(np.asarray(x, np.float64)))
-    el = torch.asin(torch.from_numpy(np.asarray(sin_el, np.float64)))
-    return az.numpy(), el.numpy()
+
+    def tensor(a: np.ndarray) -> torch.Tensor:
+        # torch takes neither negative strides nor read-only buffers (a user's reversed view, a
+        # PointCloud2's bytes): contiguous, writable float64, copied only where it is not
+        a = np.ascontiguousarray(a, np.float64)
+        return torch.from_numpy(a if a.flags.writeable else a.copy())
+
+    return torch.atan2(tensor(y), tensor(x)).numpy(), torch.asin(tensor(sin_el)).numpy()
 
 
 @dataclass
