@@ -115,3 +115,28 @@ def test_cli_generates_resumes_and_refuses_other_settings(tmp_path, capsys):
         make_pairs.main(["--out", str(out), "--split", "val"])
     assert exc.value.code == 2
 
+
+
+def test_cli_workers_write_the_same_pairs(tmp_path):
+    """--workers 2 renders shards in two spawned processes: the same shards, pair for pair, as
+    one process (only the timing fields of their meta differ)."""
+    base = ["--split", "val", "--rooms", "3", "--rooms-per-shard", "1", "--fragments", "3",
+            "--pairs", "2", "--max-points", "1500", "--quiet"]
+    assert make_pairs.main(base + ["--out", str(tmp_path / "one")]) == 0
+    assert make_pairs.main(base + ["--out", str(tmp_path / "two"), "--workers", "2"]) == 0
+    one, two = PC.list_shards(tmp_path / "one"), PC.list_shards(tmp_path / "two")
+    assert [p.name for p in one] == [p.name for p in two] == [PC.shard_name(k, k + 1) for k in range(3)]
+    timing = ("seconds", "cpu_seconds", "load_avg")
+    for a, b in zip(one, two):
+        with np.load(a) as za, np.load(b) as zb:
+            assert sorted(za.files) == sorted(zb.files)
+            for key in za.files:
+                if key == "meta":
+                    ma, mb = (json.loads(str(z["meta"])) for z in (za, zb))
+                    assert {k: v for k, v in ma.items() if k not in timing} == \
+                        {k: v for k, v in mb.items() if k not in timing}
+                else:
+                    np.testing.assert_array_equal(za[key], zb[key])
+    assert len(PC.PairCache(tmp_path / "two")) == len(PC.PairCache(tmp_path / "one")) >= 3
+    with pytest.raises(SystemExit):
+        make_pairs.main(base + ["--out", str(tmp_path / "bad"), "--workers", "0"])

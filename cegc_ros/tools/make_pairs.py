@@ -1,12 +1,14 @@
 """cegc-make-pairs: render different-view pairs of procedural rooms into an on-disk pair cache.
 
-    cegc-make-pairs --split train --rooms 2000 --out .cache/pairs/train
+    cegc-make-pairs --split train --rooms 2000 --out .cache/pairs/train [--workers 2]
     cegc-make-pairs --stats --out .cache/pairs/train
 
 Rooms 0 .. N-1 of the split (seeds from cegc_ros.data.splits) are rendered in shards of
 ``--rooms-per-shard`` rooms; a shard that exists is skipped, so the same command resumes an
 interrupted run, and a larger ``--rooms`` appends. The settings are kept in ``cache.json``;
-resuming with different settings is refused. Read the cache with
+resuming with different settings is refused. ``--workers N`` renders N shards side by side
+in spawned processes (a room's pairs depend on its seed alone, so the cache is the same).
+Read the cache with
 ``cegc_ros.data.pair_cache.PairCache``.
 """
 
@@ -49,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stats", action="store_true",
                    help="print what the cache at --out holds (pairs, overlap histogram, "
                         "throughput) and exit")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes rendering shards side by side (default 1; a room's pairs "
+                        "depend on its seed alone, so any count writes the same pairs; one "
+                        "process keeps about one core busy)")
     p.add_argument("--quiet", action="store_true", help="no per-shard progress lines")
     return p
 
@@ -84,19 +90,64 @@ def _usage_errors(args: argparse.Namespace) -> str | None:
               (args.fragments >= 2, "--fragments must be >= 2"),
               (args.pairs >= 0 and args.copy_pairs >= 0, "--pairs/--copy-pairs must be >= 0"),
               (args.max_points >= 100, "--max-points must be >= 100"),
-              (0.0 <= args.wall_views <= 1.0, "--wall-views must be in [0, 1]")]
+              (0.0 <= args.wall_views <= 1.0, "--wall-views must be in [0, 1]"),
+              (args.workers >= 1, f"--workers must be >= 1, got {args.workers}")]
     return next((msg for ok, msg in checks if not ok), None)
 
 
-def generate(args: argparse.Namespace) -> int:
+def make_shard(out: Path, split: str, k0: int, rooms_per_shard: int, lidar_fraction: float,
+               config: Any, settings: dict[str, Any], digest: str) -> tuple[int, int, float, float]:
+    """Render rooms k0 .. k0 + rooms_per_shard - 1 of ``split`` and write their shard into
+    ``out`` -> (k0, pairs written, wall seconds, load average at the end). Module level so that
+    ``--workers`` processes can run it."""
     from cegc_ros.data import splits
-    from cegc_ros.data.pair_cache import (
-        MANIFEST,
-        read_manifest,
-        shard_name,
-        write_shard,
-    )
-    from cegc_ros.data.views import ViewConfig, make_room_pairs, sensor_for_room
+    from cegc_ros.data.pair_cache import shard_name, write_shard
+    from cegc_ros.data.views import make_room_pairs, sensor_for_room
+
+    t0, c0 = time.time(), time.process_time()
+    rooms = []
+    for k in range(k0, k0 + rooms_per_shard):
+        seed = splits.room_seed(split, k)
+        rooms.append(make_room_pairs(seed, sensor_for_room(seed, lidar_fraction), config))
+    seconds = time.time() - t0
+    load = round(os.getloadavg()[0], 2)
+    meta = dict(settings, first_room=k0, end_room=k0 + rooms_per_shard, generator=digest,
+                seconds=round(seconds, 2), cpu_seconds=round(time.process_time() - c0, 2),
+                load_avg=load)
+    n = write_shard(out / shard_name(k0, k0 + rooms_per_shard), rooms, meta)
+    return k0, n, seconds, load
+
+
+def _shards_made(todo: list[int], workers: int, make: Any) -> Any:
+    """Yield ``make(k0)``'s results for every k0 of ``todo``: in turn in this process for one
+    worker, else from ``workers`` spawned processes in the order they finish (spawned, not
+    forked: the parent may hold torch's or OpenMP's threads). ``make`` must pickle (a
+    functools.partial of :func:`make_shard`)."""
+    if workers <= 1 or len(todo) <= 1:
+        for k0 in todo:
+            yield make(k0)
+        return
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    with ProcessPoolExecutor(max_workers=min(workers, len(todo)),
+                             mp_context=multiprocessing.get_context("spawn")) as pool:
+        pending = {pool.submit(make, k0) for k0 in todo}
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    yield f.result()
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def generate(args: argparse.Namespace) -> int:
+    import functools
+
+    from cegc_ros.data import splits
+    from cegc_ros.data.pair_cache import MANIFEST, read_manifest, shard_name
+    from cegc_ros.data.views import ViewConfig
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -119,27 +170,20 @@ def generate(args: argparse.Namespace) -> int:
     todo = [k0 for k0 in range(0, n_rooms, R) if not (out / shard_name(k0, k0 + R)).exists()]
     done_before = len(range(0, n_rooms, R)) - len(todo)
     if not args.quiet:
+        workers = f" by {min(args.workers, len(todo))} processes" if args.workers > 1 and len(todo) > 1 else ""
         print(f"[cegc-make-pairs] {args.split}: {n_rooms} rooms in {len(range(0, n_rooms, R))} "
-              f"shards, {done_before} done, {len(todo)} to make -> {out}", flush=True)
+              f"shards, {done_before} done, {len(todo)} to make{workers} -> {out}", flush=True)
+    make = functools.partial(make_shard, out, args.split, rooms_per_shard=R,
+                             lidar_fraction=args.lidar_fraction, config=config,
+                             settings=settings, digest=digest)
     total_pairs, t_start = 0, time.time()
-    for i, k0 in enumerate(todo):
-        t0, c0 = time.time(), time.process_time()
-        rooms = []
-        for k in range(k0, k0 + R):
-            seed = splits.room_seed(args.split, k)
-            rooms.append(make_room_pairs(seed, sensor_for_room(seed, args.lidar_fraction),
-                                         config))
-        seconds = time.time() - t0
-        meta = dict(settings, first_room=k0, end_room=k0 + R, generator=digest,
-                    seconds=round(seconds, 2), cpu_seconds=round(time.process_time() - c0, 2),
-                    load_avg=round(os.getloadavg()[0], 2))
-        n = write_shard(out / shard_name(k0, k0 + R), rooms, meta)
+    for i, (k0, n, seconds, load) in enumerate(_shards_made(todo, args.workers, make)):
         total_pairs += n
         if not args.quiet:
             rate = total_pairs / (time.time() - t_start)
             print(f"[cegc-make-pairs] rooms {k0}-{k0 + R - 1}: {n} pairs in {seconds:.1f} s; "
                   f"{i + 1}/{len(todo)} shards, {total_pairs} pairs, {rate:.2f} pairs/s "
-                  f"(load {meta['load_avg']})", flush=True)
+                  f"(load {load})", flush=True)
     if not args.quiet:
         print(f"[cegc-make-pairs] done: {total_pairs} new pairs in "
               f"{time.time() - t_start:.0f} s", flush=True)
