@@ -116,7 +116,6 @@ def test_cli_generates_resumes_and_refuses_other_settings(tmp_path, capsys):
     assert exc.value.code == 2
 
 
-
 def test_cli_workers_write_the_same_pairs(tmp_path):
     """--workers 2 renders shards in two spawned processes: the same shards, pair for pair, as
     one process (only the timing fields of their meta differ)."""

@@ -170,7 +170,8 @@ def generate(args: argparse.Namespace) -> int:
     todo = [k0 for k0 in range(0, n_rooms, R) if not (out / shard_name(k0, k0 + R)).exists()]
     done_before = len(range(0, n_rooms, R)) - len(todo)
     if not args.quiet:
-        workers = f" by {min(args.workers, len(todo))} processes" if args.workers > 1 and len(todo) > 1 else ""
+        side_by_side = min(args.workers, len(todo))
+        workers = f" by {side_by_side} processes" if side_by_side > 1 else ""
         print(f"[cegc-make-pairs] {args.split}: {n_rooms} rooms in {len(range(0, n_rooms, R))} "
               f"shards, {done_before} done, {len(todo)} to make{workers} -> {out}", flush=True)
     make = functools.partial(make_shard, out, args.split, rooms_per_shard=R,
