@@ -714,3 +714,16 @@ def test_sensor_normals_follow_each_cached_pairs_sensors():
         return float((dots[sure] > 0).mean())
     assert agreement((vs, vt)) > 0.97
     assert agreement((np.zeros(3), np.zeros(3))) < 0.9
+
+
+def test_cli_names_a_missing_pair_cache_in_one_line(tmp_path, monkeypatch, capsys):
+    """A config whose pair caches are not there (a fresh clone) exits 2 at once with one line
+    naming the directory and how to make it, not a traceback after minutes of rendering."""
+    from cegc_ros.tools import train as train_cli
+    monkeypatch.chdir(tmp_path)                          # the config's relative caches are absent
+    rc = train_cli.main(["--config", str(PARAMS / "train_views_centre.yaml"), "--out-dir", str(tmp_path / "run"),
+                         "--device", "cpu"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert ".cache/pairs/train_v" in err[0] and "not a directory" in err[0] and "cegc-make-pairs" in err[0]
+    assert not (tmp_path / ".cache" / "fragments").exists()     # nothing rendered first

@@ -18,6 +18,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-minutes", type=float, default=None, help="override train.max_minutes")
     ap.add_argument("--out-dir", default=None, help="override train.out_dir")
     args = ap.parse_args(argv)
+    from cegc_ros.data.pair_cache import PairCacheError
     try:
         from cegc_ros.training import Config, Trainer
         cfg = Config.from_yaml(args.config)
@@ -28,6 +29,11 @@ def main(argv: list[str] | None = None) -> int:
         trainer = Trainer(cfg, resume=args.resume, device=args.device)
     except (OSError, ValueError, TypeError, KeyError) as err:
         print(f"cegc-train: {err}".splitlines()[0], file=sys.stderr)
+        return 2
+    except PairCacheError as err:
+        # before any training or rendering: the config's data.pair_cache / val_pair_cache
+        print(f"cegc-train: {str(err).splitlines()[0]} (the config's data.pair_cache or "
+              f"data.val_pair_cache; make it with cegc-make-pairs, docs/data.md)", file=sys.stderr)
         return 2
     val = trainer.run()
     print(f"cegc-train: step {trainer.step}, {trainer.elapsed / 60:.1f} min, last validation {val}")
