@@ -107,6 +107,7 @@ class TrainConfig:
     seed: int = 0
     lr: float = 1e-3
     grad_clip: float = 1.0
+    geo_lr: float = 0.0  # the rate of model.geo_embedding's maps (Trainer._param_groups); 0: lr
     max_steps: int = 100000
     max_minutes: float = 60.0
     checkpoint_minutes: float = 5.0
@@ -394,7 +395,7 @@ class Trainer:
         if self.distributed:
             from torch.nn.parallel import DistributedDataParallel
             self.net = DistributedDataParallel(self.net, find_unused_parameters=True)
-        self.opt = torch.optim.RAdam(self.model.parameters(), lr=cfg.train.lr)
+        self.opt = torch.optim.RAdam(self._param_groups(), lr=cfg.train.lr)
         self.step = 0
         self.elapsed = 0.0
         self.best = math.inf
@@ -443,8 +444,8 @@ class Trainer:
         changes = self._load_weights(state)
         if "optimizer" in state:
             self.opt.load_state_dict(state["optimizer"])
-            for group in self.opt.param_groups:     # the config's rate wins (an anneal resumes so)
-                group["lr"] = self.cfg.train.lr
+            for group, ours in zip(self.opt.param_groups, self._param_groups(), strict=True):
+                group["lr"] = ours["lr"]            # the config's rates win (an anneal resumes so)
             self.step = int(state["step"])
             self.elapsed = float(state["elapsed"])
             # a best score measured on other validation pairs does not compare
@@ -462,9 +463,23 @@ class Trainer:
                                + float(prior.get("elapsed_minutes", 0.0))}
             self.warm_start.update(changes)
 
+    def _param_groups(self) -> list[dict[str, Any]]:
+        """The optimiser's parameter groups: the self-attention's distance maps
+        (``model.geo_embedding``) at ``train.geo_lr`` when set, everything else at ``train.lr``.
+        Why a rate of their own: warm-started at zero beside trained weights at a fine-tuning rate
+        (5e-5), they moved by 0.003 on average in 3000 steps (arm 22's first start) and the run
+        stayed the network it started from."""
+        geo = [p for n, p in self.model.named_parameters() if n.endswith(".geo")]
+        rest = [p for n, p in self.model.named_parameters() if not n.endswith(".geo")]
+        lr = self.cfg.train.lr
+        if not geo or not self.cfg.train.geo_lr:
+            return [{"params": list(self.model.parameters()), "lr": lr}]
+        return [{"params": rest, "lr": lr}, {"params": geo, "lr": self.cfg.train.geo_lr}]
+
     def _load_weights(self, state: dict[str, Any]) -> dict[str, int]:
         """Load the checkpoint's weights into the model; returns what a warm start changed
-        (``dropped_attention_layers``, ``hoce_topk_widened_from``; empty for none).
+        (``dropped_attention_layers``, ``hoce_topk_widened_from``, ``geo_embedding_added``;
+        empty for none).
 
         A warm start from an engine checkpoint whose network has more (self, cross) attention
         layers than ``model.attn_layers`` keeps its first ones (the blocks are residual, so the
@@ -472,8 +487,9 @@ class Trainer:
         to 1 register 0.536 of the 196 validation pairs before any training, against 0.566) and
         fine-tunes from there (issue: fast everywhere, fewer attention layers). One whose HOCE
         reads fewer sorted similarities than ``model.hoce_topk`` is widened with the same outputs
-        (:func:`cegc_ros.model.hoce.widened_refinement`; issue 25, the overlap estimate). Any
-        other difference fails as torch's strict load does."""
+        (:func:`cegc_ros.model.hoce.widened_refinement`; issue 25, the overlap estimate). One
+        without ``model.geo_embedding`` gains it with its maps at zero, the same function (issue
+        25, arm 22). Any other difference fails as torch's strict load does."""
         theirs = dict(state.get("model_config") or {})
         ours = self.cfg.model.to_dict()
         weights = state["state_dict"]
@@ -486,6 +502,12 @@ class Trainer:
             weights = widened_refinement(weights, old_topk, ours["hoce_topk"])
             theirs["hoce_topk"] = ours["hoce_topk"]
             changes["hoce_topk_widened_from"] = old_topk
+        if int(theirs.get("geo_embedding", 0)) == 0 and ours["geo_embedding"] > 0:
+            # the self-attention blocks' distance maps start at zero: the same network as theirs
+            weights = {**weights, **{k: torch.zeros_like(v) for k, v in self.model.state_dict().items()
+                                     if k.startswith("context.self_blocks.") and k.endswith(".geo")}}
+            theirs.update(geo_embedding=ours["geo_embedding"], geo_sigma=ours["geo_sigma"])
+            changes["geo_embedding_added"] = ours["geo_embedding"]
         extra = int(theirs.get("attn_layers", ours["attn_layers"])) - ours["attn_layers"]
         same_otherwise = {k: v for k, v in theirs.items() if k != "attn_layers"} == \
             {k: v for k, v in ours.items() if k != "attn_layers" and k in theirs}

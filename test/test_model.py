@@ -242,10 +242,15 @@ def test_config_rejects_bad_values():
         ModelConfig(overlap_ratio=0.0)
     with pytest.raises(ValueError, match="dilation"):
         ModelConfig(dilation=0)
+    with pytest.raises(ValueError, match="geo_embedding"):
+        ModelConfig(geo_embedding=1)
+    with pytest.raises(ValueError, match="geo_sigma"):
+        ModelConfig(geo_sigma=0.0)
     # checkpoints written before the field existed load with the paper's neighbourhood
     old = ModelConfig().to_dict()
     del old["dilation"], old["cams_centre"], old["cams_centre_power"], old["cams_centre_gradient"]
-    assert ModelConfig.from_dict(old).dilation == 1
+    del old["geo_embedding"], old["geo_sigma"]
+    assert ModelConfig.from_dict(old).dilation == 1 and ModelConfig.from_dict(old).geo_embedding == 0
     assert ModelConfig.from_dict(old).cams_centre == "own"
     assert ModelConfig.from_dict(old).cams_centre_gradient is False
     assert ModelConfig.from_dict(ModelConfig().to_dict()) == ModelConfig()
@@ -361,6 +366,75 @@ def test_dilated_agnn_gathers_every_dth_of_the_k_d_nearest_in_its_later_layers(v
         assert torch.allclose(got, by_hand, atol=1e-6)
         assert torch.equal(plain.encode(src, nrm, desc), plain.agnn(edges, idx, feats))
         assert (got - plain.encode(src, nrm, desc)).abs().max() > 1e-3
+
+
+def test_distance_knots_are_log_spaced_and_clamped():
+    from cegc_ros.model.features import distance_knots
+    xyz = torch.tensor([[[0.0, 0, 0], [0.04, 0, 0], [0, 1.5, 0], [0, 0, 3.0]]])
+    t = distance_knots(xyz, 32, sigma=0.04, reach=1.5)
+    assert t.shape == (1, 4, 4)
+    assert torch.allclose(torch.diagonal(t[0]), torch.zeros(4))
+    assert t[0, 0, 1].item() == pytest.approx(31 * np.log(2.0) / np.log1p(1.5 / 0.04), rel=1e-5)
+    assert t[0, 0, 2].item() == pytest.approx(31.0, abs=1e-4)       # at reach: the last knot
+    assert t[0, 0, 3].item() == 31.0                                 # beyond: clamped to it
+    assert torch.equal(t, t.transpose(1, 2))
+
+
+def test_distance_attention_is_geotransformers_form_on_hat_functions():
+    """AttentionBlock with geo_dim G: logit_ij = q_i . (k_j + W_r r_ij) / sqrt(d) per head, with
+    r_ij the pair's distance on G hat functions (weights 1 - w and w on the two knots around it),
+    which the block computes with two gathers; checked against that form written out."""
+    import torch.nn.functional as F
+    from cegc_ros.model.features import AttentionBlock, distance_knots
+    torch.manual_seed(0)
+    B, N, C, h, G = 2, 40, 16, 2, 8
+    blk = AttentionBlock(C, h, geo_dim=G).eval()
+    with torch.no_grad():
+        blk.geo.normal_(0, 1.0)
+    x, xyz = torch.randn(B, N, C), torch.rand(B, N, 3) - 0.5
+    t = distance_knots(xyz, G, sigma=0.04)
+    hat = (1 - (t.unsqueeze(-1) - torch.arange(G)).abs()).clamp_min(0)      # (B, N, N, G)
+    assert torch.allclose(hat.sum(-1), torch.ones(B, N, N), atol=1e-5)
+    with torch.no_grad():
+        q = blk.qkv_q(x).view(B, N, h, C // h).transpose(1, 2)
+        k = blk.qkv_k(x).view(B, N, h, C // h).transpose(1, 2)
+        v = blk.qkv_v(x).view(B, N, h, C // h).transpose(1, 2)
+        r = torch.einsum("hcg,bnmg->bhnmc", blk.geo, hat)                   # W_r r_ij per head
+        logits = (q.unsqueeze(3) * (k.unsqueeze(2) + r)).sum(-1) * (C // h) ** -0.5
+        msg = torch.softmax(logits, -1) @ v
+        want = x + blk.update(torch.cat([x, blk.merge(msg.transpose(1, 2).reshape(B, N, C))], -1))
+        got = blk(x, x, t)
+    assert torch.allclose(got, want, atol=1e-5)
+    assert (got - blk(x, x, torch.zeros_like(t))).abs().max() > 1e-2       # the distances matter
+    with pytest.raises(ValueError, match="pairs' distances"):
+        blk(x, x)
+
+
+def test_distance_attention_starts_as_the_network_without_it_and_stays_rigid_invariant():
+    """geo_embedding with its maps at zero is the network without it (a warm start's step 0);
+    with maps drawn at random it is another function, still of the clouds' shapes only (a moved
+    source cloud gives the same candidates and scores), and one batch of both clouds is the
+    per-cloud path."""
+    torch.manual_seed(0)
+    plain = CEGC(small_cfg(cams_centre="overlap")).eval()
+    geo = CEGC(small_cfg(cams_centre="overlap", geo_embedding=16)).eval()
+    assert geo.load_state_dict(plain.state_dict(), strict=False).missing_keys == ["context.self_blocks.0.geo"]
+    src, tgt, ns, nt, ds, dt = inputs(120, 120, seed=5)
+    with torch.no_grad():
+        a = plain.score_candidates(src, tgt, ns, nt, ds, dt, k_learned=4)
+        b = geo.score_candidates(src, tgt, ns, nt, ds, dt, k_learned=4)
+        assert torch.equal(a.candidates, b.candidates) and torch.allclose(a.scores, b.scores, atol=1e-6)
+        geo.context.self_blocks[0].geo.normal_(0, 2.0)
+        c = geo.score_candidates(src, tgt, ns, nt, ds, dt, k_learned=4)
+        assert (c.src_features - a.src_features).abs().max() > 1e-3     # float noise: ~1e-6
+        R = torch.tensor(random_rotation(np.random.default_rng(4)), dtype=torch.float32)
+        moved = src @ R.T + torch.tensor([0.3, -0.8, 0.5])
+        d = geo.score_candidates(moved, tgt, ns @ R.T, nt, ds, dt, k_learned=4)
+        assert torch.equal(c.candidates, d.candidates)
+        torch.testing.assert_close(c.scores, d.scores, atol=1e-3, rtol=1e-3)
+        e = geo.score_candidates(src, tgt, ns, nt, ds, dt, k_learned=4, stack=False)
+        assert torch.equal(c.candidates, e.candidates)
+        torch.testing.assert_close(c.scores, e.scores, atol=1e-5, rtol=1e-5)
 
 
 def test_cams_overlap_centre_is_hoces_sharpened_centroid():

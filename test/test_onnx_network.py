@@ -134,6 +134,25 @@ def test_a_dilated_or_overlap_centred_network_exports_with_torchs_outputs(tmp_pa
     assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL
 
 
+def test_a_network_with_the_distance_attention_exports_with_torchs_outputs(tmp_path):
+    """model.geo_embedding (arm 22): the self-attention's logits read each pair's distance on
+    knots, two gathers and a lerp inside the graph; with the maps drawn at random (not the zeros
+    a warm start begins with, which would test nothing), ONNX Runtime gives torch's outputs within
+    the stated tolerance (the lerp is continuous at the knots, so cdist's rounding there moves
+    nothing)."""
+    pytest.importorskip("onnx")
+    state = torch.load(default_weights(), map_location="cpu", weights_only=True)
+    state["model_config"].update(geo_embedding=16)
+    geo = torch.randn(4, 32, 16, generator=torch.Generator().manual_seed(0)) * 0.5
+    state["state_dict"]["context.self_blocks.0.geo"] = geo
+    ckpt = tmp_path / "geo.pt"
+    torch.save(state, ckpt)
+    assert export_main([str(ckpt)]) == 0
+    p = parity(ckpt, onnx_path_for(ckpt))
+    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
+    assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL
+
+
 def test_export_errors_are_one_line(tmp_path, capsys):
     assert export_main([str(tmp_path / "missing.pt")]) == 1
     err = capsys.readouterr().err.strip()

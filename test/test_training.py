@@ -376,6 +376,46 @@ def test_a_warm_start_into_a_wider_hoce_keeps_its_overlap_logits(tmp_path):
                 device="cpu", fragments=frags, val_fragments=frags, progress=False)
 
 
+def test_a_warm_start_into_the_distance_attention_starts_as_its_checkpoint(tmp_path):
+    """A checkpoint without model.geo_embedding, warm-started into a network with it: every
+    weight is kept, the added maps start at zero (the same features), the run records it and
+    trains them; a trainer state (last.pt) must match exactly."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC, ModelConfig
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / "geo", max_steps=2)
+    cfg.model = ModelConfig.from_dict({**cfg.model.to_dict(), "geo_embedding": 8})
+    cfg.train.geo_lr = 0.01
+    plain = CEGC(ModelConfig.from_dict({**cfg.model.to_dict(), "geo_embedding": 0})).eval()
+    save_checkpoint(tmp_path / "plain.pt", plain, {"step": 10, "pairs_seen": 10})
+    trainer = Trainer(cfg, resume=tmp_path / "plain.pt", device="cpu", fragments=frags,
+                      val_fragments=frags, progress=False)
+    assert trainer.warm_start["geo_embedding_added"] == 8
+    got, want = trainer.model.state_dict(), plain.state_dict()
+    assert set(got) - set(want) == {"context.self_blocks.0.geo"}
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    assert not got["context.self_blocks.0.geo"].any()
+    g = torch.Generator().manual_seed(1)
+    xyz = [torch.rand(1, 60, 3, generator=g) - 0.5 for _ in range(2)]
+    nrm = [torch.nn.functional.normalize(torch.randn(1, 60, 3, generator=g), dim=-1) for _ in range(2)]
+    desc = [torch.rand(1, 60, 33, generator=g) for _ in range(2)]
+    with torch.no_grad():
+        a = trainer.model.eval().features(xyz[0], xyz[1], *nrm, *desc)
+        b = plain.features(xyz[0], xyz[1], *nrm, *desc)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    trainer.model.train()
+    trainer.run()
+    assert trainer.model.state_dict()["context.self_blocks.0.geo"].abs().sum() > 0      # now in use
+    model, meta = load_checkpoint(tmp_path / "geo" / "snapshots" / "step_0000002.pt")
+    assert meta["warm_start"]["geo_embedding_added"] == 8 and model.cfg.geo_embedding == 8
+    # the maps learn at train.geo_lr, the rest at train.lr, after a resume too
+    groups = [(len(g["params"]), g["lr"]) for g in trainer.opt.param_groups]
+    assert groups == [(len(want), cfg.train.lr), (1, 0.01)]
+    again = Trainer(cfg, resume=tmp_path / "geo" / "last.pt", device="cpu", fragments=frags,
+                    val_fragments=frags, progress=False)
+    assert [(len(g["params"]), g["lr"]) for g in again.opt.param_groups] == groups
+
+
 def test_a_warm_start_continues_the_curriculum_where_the_weights_left_it(tmp_path):
     from cegc_ros.engine import save_checkpoint
     from cegc_ros.model import CEGC

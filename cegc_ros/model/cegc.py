@@ -91,7 +91,8 @@ class CEGC(nn.Module):
         else:
             c_edge, c_point = 4, cfg.desc_dim
         self.agnn = AGNN(c_edge, c_point, cfg.agnn_dims, cfg.feat_dim)
-        self.context = ContextEnhancer(cfg.feat_dim, cfg.attn_heads, cfg.attn_layers)
+        self.context = ContextEnhancer(cfg.feat_dim, cfg.attn_heads, cfg.attn_layers, cfg.geo_embedding,
+                                       cfg.geo_sigma)
         self.hoce = HOCE(cfg.feat_dim, cfg.hoce_topk)
         self.cams = CAMS(cfg.feat_dim, cfg.cams_dim, cfg.variant, cfg.chunk_rows, cfg.cams_centre,
                          cfg.cams_centre_power, cfg.cams_centre_gradient)
@@ -118,13 +119,13 @@ class CEGC(nn.Module):
         if not (stack and same):
             fx = self.encode(src, src_normals, src_desc)
             fy = self.encode(tgt, tgt_normals, tgt_desc)
-            return self.context(fx, fy)
+            return self.context(fx, fy, src, tgt)
 
         def both(a: Tensor | None, b: Tensor | None) -> Tensor | None:
             return None if a is None else torch.cat([a, b])
         B = src.shape[0]
         f = self.encode(both(src, tgt), both(src_normals, tgt_normals), both(src_desc, tgt_desc))
-        f = self.context.stacked(f, B)
+        f = self.context.stacked(f, B, both(src, tgt))
         return f[:B], f[B:]
 
     def score_candidates(self, src: Tensor, tgt: Tensor, src_normals: Tensor | None = None,

@@ -49,6 +49,13 @@ class ModelConfig:
     # training only (the forward pass is the same): whether CAMS's losses reach HOCE's logits
     # through the "overlap" centre (arm 20) or stop there (arm 19 and every checkpoint before)
     cams_centre_gradient: bool = False
+    # The self-attention blocks' logits also read each pair's distance within its cloud, on this
+    # many log-spaced knots (GeoTransformer's geometric structure embedding, its distance part:
+    # features that know where they sit in their cloud, rigid-invariant; features.AttentionBlock;
+    # arm 22, issue 25). 0: none (every checkpoint before 2026-12-07). geo_sigma: the knots'
+    # log scale in normalised units (0.04: about one network-point spacing at 512 points).
+    geo_embedding: int = 0
+    geo_sigma: float = 0.04
     chunk_rows: int = 256                # CAMS rows per chunk (bounds memory at large N)
     match_temperature: float = 0.1       # softmax temperature of soft correspondences (training)
     # Input features ("ri"): normal and FPFH neighbourhoods in normalised units (see
@@ -67,6 +74,10 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.dilation must be >= 1, got {self.dilation}")
         if not 0.0 < self.overlap_ratio <= 1.0:
             raise ValueError(f"ModelConfig.overlap_ratio must be in (0, 1], got {self.overlap_ratio}")
+        if self.geo_embedding < 0 or self.geo_embedding == 1:
+            raise ValueError(f"ModelConfig.geo_embedding must be 0 or >= 2 knots, got {self.geo_embedding}")
+        if not self.geo_sigma > 0:
+            raise ValueError(f"ModelConfig.geo_sigma must be > 0, got {self.geo_sigma}")
         if self.cams_centre not in CAMS_CENTRES:
             raise ValueError(f"ModelConfig.cams_centre must be one of {CAMS_CENTRES}, got {self.cams_centre!r}")
         if not self.cams_centre_power > 0:

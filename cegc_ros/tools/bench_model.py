@@ -63,7 +63,7 @@ def _one(points: int, repeats: int, threads: int) -> dict:
         fy = model.encode(args[1], args[3], args[5])
         st["agnn_ms"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        fx, fy = model.context(fx, fy)
+        fx, fy = model.context(fx, fy, args[0], args[1])
         st["attention_ms"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         lx, ly = model.hoce(fx, fy)
