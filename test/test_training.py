@@ -342,19 +342,30 @@ def test_a_warm_start_from_a_warm_started_checkpoint_counts_every_pair_seen(tmp_
     assert meta["pairs_seen"] == 6996 and meta["warm_start"]["pairs_seen"] == 6994
 
 
+def _warm_start_across(tmp_path, name: str, field: str, ours, theirs, **train):
+    """A tiny run (out dir ``name``) whose network has ModelConfig ``field`` = ``ours``,
+    warm-started from a checkpoint whose network has ``theirs``: (config, fragments, trainer, the
+    checkpoint's network)."""
+    from cegc_ros.engine import save_checkpoint
+    from cegc_ros.model import CEGC, ModelConfig
+    frags = fragments(2)
+    cfg = tiny_config(tmp_path / name, max_steps=2)
+    cfg.model = ModelConfig.from_dict({**cfg.model.to_dict(), field: ours})
+    for key, value in train.items():
+        setattr(cfg.train, key, value)
+    old = CEGC(ModelConfig.from_dict({**cfg.model.to_dict(), field: theirs})).eval()
+    save_checkpoint(tmp_path / f"{name}_from.pt", old, {"step": 10, "pairs_seen": 10})
+    trainer = Trainer(cfg, resume=tmp_path / f"{name}_from.pt", device="cpu", fragments=frags,
+                      val_fragments=frags, progress=False)
+    return cfg, frags, trainer, old
+
+
 def test_a_warm_start_into_a_wider_hoce_keeps_its_overlap_logits(tmp_path):
     """A checkpoint whose HOCE reads 4 sorted similarities, warm-started into hoce_topk 8: every
     weight but the refinement's first map is kept, and HOCE's logits are the same (the added
     similarities start at weight 0); the run then trains them and records the widening."""
     from cegc_ros.engine import save_checkpoint
-    from cegc_ros.model import CEGC, ModelConfig
-    frags = fragments(2)
-    cfg = tiny_config(tmp_path / "wide", max_steps=2)
-    cfg.model = ModelConfig.from_dict({**cfg.model.to_dict(), "hoce_topk": 8})
-    narrow = CEGC(ModelConfig.from_dict({**cfg.model.to_dict(), "hoce_topk": 4})).eval()
-    save_checkpoint(tmp_path / "narrow.pt", narrow, {"step": 10, "pairs_seen": 10})
-    trainer = Trainer(cfg, resume=tmp_path / "narrow.pt", device="cpu", fragments=frags,
-                      val_fragments=frags, progress=False)
+    cfg, frags, trainer, narrow = _warm_start_across(tmp_path, "wide", "hoce_topk", 8, 4)
     assert trainer.warm_start["hoce_topk_widened_from"] == 4
     got, want = trainer.model.state_dict(), narrow.state_dict()
     key = "hoce.refine.0.0.weight"
@@ -380,16 +391,7 @@ def test_a_warm_start_into_the_distance_attention_starts_as_its_checkpoint(tmp_p
     """A checkpoint without model.geo_embedding, warm-started into a network with it: every
     weight is kept, the added maps start at zero (the same features), the run records it and
     trains them; a trainer state (last.pt) must match exactly."""
-    from cegc_ros.engine import save_checkpoint
-    from cegc_ros.model import CEGC, ModelConfig
-    frags = fragments(2)
-    cfg = tiny_config(tmp_path / "geo", max_steps=2)
-    cfg.model = ModelConfig.from_dict({**cfg.model.to_dict(), "geo_embedding": 8})
-    cfg.train.geo_lr = 0.01
-    plain = CEGC(ModelConfig.from_dict({**cfg.model.to_dict(), "geo_embedding": 0})).eval()
-    save_checkpoint(tmp_path / "plain.pt", plain, {"step": 10, "pairs_seen": 10})
-    trainer = Trainer(cfg, resume=tmp_path / "plain.pt", device="cpu", fragments=frags,
-                      val_fragments=frags, progress=False)
+    cfg, frags, trainer, plain = _warm_start_across(tmp_path, "geo", "geo_embedding", 8, 0, geo_lr=0.01)
     assert trainer.warm_start["geo_embedding_added"] == 8
     got, want = trainer.model.state_dict(), plain.state_dict()
     assert set(got) - set(want) == {"context.self_blocks.0.geo"}
