@@ -370,6 +370,13 @@ def _loss(cfg: Config, out: Any, b: dict[str, torch.Tensor], ref: Any = None
     return loss, parts
 
 
+def _is_distance_map(name: str) -> bool:
+    """Whether a parameter of CEGC is a self-attention block's distance map (``model.geo_embedding``,
+    cegc_ros/model/features.py ``AttentionBlock.geo``): the tensors a warm start adds at zero and
+    ``train.geo_lr`` trains."""
+    return name.startswith("context.self_blocks.") and name.endswith(".geo")
+
+
 class Trainer:
     def __init__(self, cfg: Config, resume: str | Path | None = None, device: str = "auto",
                  fragments: list[Any] | None = None, val_fragments: list[Any] | None = None,
@@ -469,11 +476,12 @@ class Trainer:
         Why a rate of their own: warm-started at zero beside trained weights at a fine-tuning rate
         (5e-5), they moved by 0.003 on average in 3000 steps (arm 22's first start) and the run
         stayed the network it started from."""
-        geo = [p for n, p in self.model.named_parameters() if n.endswith(".geo")]
-        rest = [p for n, p in self.model.named_parameters() if not n.endswith(".geo")]
+        named = list(self.model.named_parameters())
+        geo = [p for n, p in named if _is_distance_map(n)]
         lr = self.cfg.train.lr
         if not geo or not self.cfg.train.geo_lr:
-            return [{"params": list(self.model.parameters()), "lr": lr}]
+            return [{"params": [p for _, p in named], "lr": lr}]
+        rest = [p for n, p in named if not _is_distance_map(n)]
         return [{"params": rest, "lr": lr}, {"params": geo, "lr": self.cfg.train.geo_lr}]
 
     def _load_weights(self, state: dict[str, Any]) -> dict[str, int]:
@@ -505,7 +513,7 @@ class Trainer:
         if int(theirs.get("geo_embedding", 0)) == 0 and ours["geo_embedding"] > 0:
             # the self-attention blocks' distance maps start at zero: the same network as theirs
             weights = {**weights, **{k: torch.zeros_like(v) for k, v in self.model.state_dict().items()
-                                     if k.startswith("context.self_blocks.") and k.endswith(".geo")}}
+                                     if _is_distance_map(k)}}
             theirs.update(geo_embedding=ours["geo_embedding"], geo_sigma=ours["geo_sigma"])
             changes["geo_embedding_added"] = ours["geo_embedding"]
         extra = int(theirs.get("attn_layers", ours["attn_layers"])) - ours["attn_layers"]
