@@ -197,12 +197,21 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(val_cache, tm
     # and how HOCE's overlap confidences find each cloud's overlap
     assert all(0.0 < float(r["source_overlap_share"]) <= 1.0 and 0.0 <= float(r["target_overlap_kept"]) <= 1.0
                for r in rows)
+    # and what the network predicts of it (HOCE's confidences averaged over each cloud), whether
+    # the estimator explored and how many draws the pair took (one: the second draw is off)
+    from cegc_ros.engine import Registrar
+    registrar = Registrar.from_checkpoint(default_weights(), device="cpu")
+    pairs, _ = select_weights.validation_pairs(val_cache, 40, "kinect")
+    for r, p in zip(rows, pairs):
+        res = registrar.register(p.source, p.target)
+        assert float(r["source_predicted_overlap"]) == pytest.approx(float(res.source_overlap.mean()), abs=1e-6)
+        assert float(r["target_predicted_overlap"]) == pytest.approx(float(res.target_overlap.mean()), abs=1e-6)
+        assert r["explored"] == str(res.explored) and r["draws"] == "1"
     # and the geometric evidence of the truth and of the answer: the truth's is pose_evidence's
     # for that pair (it does not depend on the answer); how an answer's compares with it is
     # test_pose_evidence_prefers_the_pose_that_explains_the_clouds' (on these 2000-point pairs
     # a right answer may be 1 deg / 10 cm off, as on the Xeon with AVX-512, and score less)
     from cegc_ros.config import EngineConfig
-    pairs, _ = select_weights.validation_pairs(val_cache, 40, "kinect")
     assert all(0.0 < float(r["gt_evidence"]) <= 1.0 and 0.0 <= float(r["result_evidence"]) <= 1.0 for r in rows)
     for r, p in zip(rows, pairs):
         own = select_weights.pose_evidence(p.T_target_source, p.source, p.target, p.T_target_source, EngineConfig())
