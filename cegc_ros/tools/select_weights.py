@@ -42,8 +42,9 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
     """``register(source, target)`` -> a result with T_target_source, valid and timings["total"]
     (the engine's or a peer's) on every pair: recall overall / under 30% overlap / from 30% on,
     and the median seconds per pair. ``rows``: one dict per pair is appended (overlap, correct,
-    valid, rotation and translation errors, fitness, each stage's seconds, and the rank of the
-    first right pose among those the estimator's verification ranked, -1 for none) for ``--dump``;
+    valid, rotation and translation errors, fitness, ambiguity, whether the estimator explored,
+    the draws, HOCE's predicted overlap, each stage's seconds, and the rank of the first right
+    pose among those the estimator's verification ranked, -1 for none) for ``--dump``;
     with ``evidence`` (an EngineConfig) also :func:`pose_evidence`'s columns."""
     from cegc_ros.metrics import rotation_error_deg, within
     ok, low, secs, missed = [], [], [], []
@@ -264,8 +265,8 @@ def main(argv: list[str] | None = None) -> int:
                          "default: the one seed of --set or the defaults")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write one CSV row per run and pair (overlap, correct, errors, valid, fitness, the "
-                         "confidences' ranking of the true correspondences, how HOCE finds the overlap, "
-                         "stage seconds)")
+                         "confidences' ranking of the true correspondences, how HOCE finds the overlap and "
+                         "what it predicts of it, whether the estimator explored, the draws, stage seconds)")
     args = ap.parse_args(argv)
     try:
         from cegc_ros.data.pair_cache import PairCacheError
