@@ -72,7 +72,6 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          "ambiguity": float(getattr(res, "ambiguity", float("nan"))),
-                         "explored": bool(getattr(res, "explored", False)), "draws": int(getattr(res, "draws", 1)),
                          **predicted_overlap(res),
                          **ranking(res, T), **overlap_ranking(res, p.source, p.target, T),
                          **(pose_evidence(E, p.source, p.target, T, evidence) if evidence is not None else {}),
@@ -99,13 +98,15 @@ def ranking(res: Any, T: np.ndarray, top: int = 100) -> dict[str, float]:
             "ranking_auc": rank_auc(w, true)}
 
 
-def predicted_overlap(res: Any) -> dict[str, float]:
+def predicted_overlap(res: Any) -> dict[str, Any]:
     """The mean of HOCE's overlap confidences over each cloud's network points ("source_", "target_"
     ``predicted_overlap``): the network's estimate of the share of each cloud that overlaps the
-    other. Empty for a peer's result."""
+    other; with whether the estimator explored and the draws the pair took (what a second draw
+    gated by that estimate would read). Empty for a peer's result."""
     if getattr(res, "source_overlap", None) is None or not len(res.source_overlap):
         return {}
-    return {"source_predicted_overlap": float(np.mean(res.source_overlap)),
+    return {"explored": bool(res.explored), "draws": int(res.draws),
+            "source_predicted_overlap": float(np.mean(res.source_overlap)),
             "target_predicted_overlap": float(np.mean(res.target_overlap))}
 
 
