@@ -204,8 +204,8 @@ def test_dump_writes_one_row_per_pair_with_correctness_and_fitness(val_cache, tm
     pairs, _ = select_weights.validation_pairs(val_cache, 40, "kinect")
     for r, p in zip(rows, pairs):
         res = registrar.register(p.source, p.target)
-        assert float(r["source_predicted_overlap"]) == pytest.approx(float(res.source_overlap.mean()), abs=1e-6)
-        assert float(r["target_predicted_overlap"]) == pytest.approx(float(res.target_overlap.mean()), abs=1e-6)
+        for side, conf in (("source", res.source_overlap), ("target", res.target_overlap)):
+            assert float(r[f"{side}_predicted_overlap"]) == pytest.approx(float(conf.mean()), abs=1e-6)
         assert r["explored"] == str(res.explored) and r["draws"] == "1"
     # and the geometric evidence of the truth and of the answer: the truth's is pose_evidence's
     # for that pair (it does not depend on the answer); how an answer's compares with it is
