@@ -450,10 +450,10 @@ class Trainer:
         state = torch.load(path, map_location=self.device, weights_only=True)
         changes = self._load_weights(state)
         if "optimizer" in state:
-            theirs, ours = len(state["optimizer"]["param_groups"]), len(self.opt.param_groups)
-            if theirs != ours:
-                raise ValueError(f"{path}: its optimiser has {theirs} parameter group(s), this config "
-                                 f"{ours} (train.geo_lr sets the distance maps' own): resume it under "
+            saved, wanted = len(state["optimizer"]["param_groups"]), len(self.opt.param_groups)
+            if saved != wanted:
+                raise ValueError(f"{path}: its optimiser has {saved} parameter group(s), this config "
+                                 f"{wanted} (train.geo_lr sets the distance maps' own): resume it under "
                                  f"the config it was written with, or warm-start a new out_dir from "
                                  f"a snapshot (snapshots/step_*.pt)")
             self.opt.load_state_dict(state["optimizer"])

@@ -416,7 +416,7 @@ def test_a_warm_start_into_the_distance_attention_starts_as_its_checkpoint(tmp_p
     again = Trainer(cfg, resume=tmp_path / "geo" / "last.pt", device="cpu", fragments=frags,
                     val_fragments=frags, progress=False)
     assert [(len(g["params"]), g["lr"]) for g in again.opt.param_groups] == groups
-    # a state saved with one group, resumed under a config with two (or the other way): one line
+    # a state saved with two groups, resumed under a config with one (or the other way): one line
     cfg.train.geo_lr = 0.0
     with pytest.raises(ValueError, match=r"last.pt: its optimiser has 2 parameter group\(s\), this config 1"):
         Trainer(cfg, resume=tmp_path / "geo" / "last.pt", device="cpu", fragments=frags,
