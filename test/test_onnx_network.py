@@ -23,6 +23,15 @@ LOGIT_TOL = 1e-3
 #: A learned candidate ONNX Runtime takes instead of torch's lies at most this far below torch's
 #: weakest in cosine similarity (a tie within rounding; cosines span [-1, 1]).
 TIE_TOL = 1e-4
+#: CAMS's global context (CFM's m, cegc_ros/model/cams.py) is the mean over every scored pair, so
+#: a near-tied candidate that ONNX Runtime takes instead of torch's moves every pair's score a
+#: little: 1.4e-3 for one swap of 5120 (the geo_embedding export below with its per-head gathers,
+#: 2026-12-07). Where every candidate agrees, the scores are held to LOGIT_TOL.
+SWAP_TOL = 1e-2
+
+
+def _scores_within(p: dict[str, float]) -> bool:
+    return p["scores"] < (LOGIT_TOL if p["candidates_equal"] == 1.0 else SWAP_TOL)
 
 
 def _corner(n: int, seed: int) -> np.ndarray:
@@ -44,7 +53,7 @@ def test_the_shipped_export_is_of_the_shipped_weights():
 def test_the_shipped_export_gives_torchs_outputs(num_points):
     ckpt = default_weights()
     p = parity(ckpt, onnx_path_for(ckpt), num_points=num_points)
-    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["similarity"] < LOGIT_TOL
+    assert p["overlap_logits"] < LOGIT_TOL and _scores_within(p) and p["similarity"] < LOGIT_TOL
     # The learned top 3 may differ where two target points tie in cosine similarity to within
     # the kernels' rounding (which the CPU decides: 6 of 5120 differed on an AVX2 EPYC, 0-5 on
     # AVX-512 machines); every difference is such a tie, and they are rare.
@@ -89,7 +98,7 @@ def test_export_of_any_checkpoint_and_a_stale_export_is_refused(tiny, capsys):
     assert line.startswith(f"{onnx_path_for(a)}: overlap logits within ")
     assert float(line.split("candidates equal ")[1].split(",")[0]) >= 0.99   # random weights: near-ties
     p = parity(a, onnx_path_for(a), num_points=128)
-    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL and p["candidates_equal"] >= 0.99
+    assert p["overlap_logits"] < LOGIT_TOL and _scores_within(p) and p["candidates_equal"] >= 0.99
     assert p["tie_gap"] < TIE_TOL
     pre = PreprocessConfig(num_points=128)
     assert Registrar.from_checkpoint(a, device="cpu", preprocess=pre)._onnx is not None
@@ -140,7 +149,7 @@ def test_a_changed_network_exports_with_torchs_outputs(tmp_path, change, tensors
     torch.save(state, ckpt)
     assert export_main([str(ckpt)]) == 0
     p = parity(ckpt, onnx_path_for(ckpt))
-    assert p["overlap_logits"] < LOGIT_TOL and p["scores"] < LOGIT_TOL
+    assert p["overlap_logits"] < LOGIT_TOL and _scores_within(p)
     assert p["candidates_equal"] >= 0.995 and p["tie_gap"] < TIE_TOL
 
 

@@ -188,10 +188,14 @@ class AttentionBlock(nn.Module):
     pair's distance embedded on ``geo_dim`` piecewise-linear hat functions
     (:func:`distance_knots`) instead of GeoTransformer's sinusoids: ``(W_r^T q_i) . r_ij`` per
     head is then each query's own piecewise-linear function of distance, read at two knots a pair
-    (two gathers of (B, h, N, N)) where the sinusoids' (B, N, N, geo_dim) embedding and its
+    (two gathers of (B, N, N) a head) where the sinusoids' (B, N, N, geo_dim) embedding and its
     product cost the network ~60% more time on 2 cores (42 -> 68 ms a pair, torch, 512 points,
-    32 sinusoids). Added to the logits as SDPA's float mask. ``geo`` starts at zero, so a network
-    warm-started from weights without it begins as that network (training/_load_weights)."""
+    32 sinusoids). The gathers run head by head with the (B, N, M) knot indices shared: one
+    gather over (B, h, N, M) needs the indices expanded to every head, which in ONNX Runtime is
+    an int64 Expand and costs a 512-point cloud 4.2-4.9 ms against 2.8-3.2 (the same bias within
+    5e-7; runs/s40/headgather.py, 2026-12-07). Added to the logits as SDPA's float mask. ``geo``
+    starts at zero, so a network warm-started from weights without it begins as that network
+    (training/_load_weights)."""
 
     def __init__(self, dim: int, heads: int, geo_dim: int = 0) -> None:
         super().__init__()
@@ -218,10 +222,11 @@ class AttentionBlock(nn.Module):
             if knots is None:
                 raise ValueError("this attention block reads the pairs' distances; none were given")
             u = torch.einsum("bhnc,hcg->bhng", q, self.geo) * (C // h) ** -0.5   # (B, h, N, G)
+            slope = u[..., 1:] - u[..., :-1]                               # (B, h, N, G - 1)
             lo = knots.floor().clamp(max=self.geo.shape[-1] - 2)           # (B, N, M)
-            w = (knots - lo).unsqueeze(1)                                  # (B, 1, N, M)
-            i = lo.long().unsqueeze(1).expand(B, h, N, knots.shape[-1])
-            bias = u.gather(-1, i) * (1 - w) + u.gather(-1, i + 1) * w     # (B, h, N, M)
+            w, i = knots - lo, lo.long()                                   # (B, N, M) each
+            bias = torch.stack([torch.addcmul(u[:, j].gather(-1, i), slope[:, j].gather(-1, i), w)
+                                for j in range(h)], dim=1)                 # (B, h, N, M)
         msg = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)     # (B, h, N, C/h)
         msg = self.merge(msg.transpose(1, 2).reshape(B, N, C))
         return x + self.update(torch.cat([x, msg], dim=-1))
