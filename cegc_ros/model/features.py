@@ -193,9 +193,9 @@ class AttentionBlock(nn.Module):
     32 sinusoids). The gathers run head by head with the (B, N, M) knot indices shared: one
     gather over (B, h, N, M) needs the indices expanded to every head, which in ONNX Runtime is
     an int64 Expand and costs a 512-point cloud 4.2-4.9 ms against 2.8-3.2 (the same bias within
-    5e-7; docs/performance.md, "The weights of arm 22"). Added to the logits as SDPA's float mask. ``geo``
-    starts at zero, so a network warm-started from weights without it begins as that network
-    (training/_load_weights)."""
+    5e-7; docs/performance.md, "The weights of arm 22"). Added to the logits as SDPA's float
+    mask. ``geo`` starts at zero, so a network warm-started from weights without it begins as
+    that network (training/_load_weights)."""
 
     def __init__(self, dim: int, heads: int, geo_dim: int = 0) -> None:
         super().__init__()

@@ -72,7 +72,7 @@ def evaluate(register, pairs, rows: list[dict] | None = None, evidence: Any = No
                          "rotation_error_deg": rot_deg, "translation_error_m": trans_m,
                          "valid": bool(res.valid), "fitness": float(getattr(res, "fitness", float("nan"))),
                          "ambiguity": float(getattr(res, "ambiguity", float("nan"))),
-                         **predicted_overlap(res),
+                         **draw_columns(res),
                          **ranking(res, T), **overlap_ranking(res, p.source, p.target, T),
                          **(pose_evidence(E, p.source, p.target, T, evidence) if evidence is not None else {}),
                          **{f"{k}_s": float(v) for k, v in res.timings.items()}})
@@ -98,11 +98,11 @@ def ranking(res: Any, T: np.ndarray, top: int = 100) -> dict[str, float]:
             "ranking_auc": rank_auc(w, true)}
 
 
-def predicted_overlap(res: Any) -> dict[str, Any]:
-    """The mean of HOCE's overlap confidences over each cloud's network points ("source_", "target_"
-    ``predicted_overlap``): the network's estimate of the share of each cloud that overlaps the
-    other; with whether the estimator explored and the draws the pair took (what a second draw
-    gated by that estimate would read). Empty for a peer's result."""
+def draw_columns(res: Any) -> dict[str, Any]:
+    """What a second draw gated by the predicted overlap would read: whether the estimator
+    explored, the draws the pair took, and the mean of HOCE's overlap confidences over each
+    cloud's network points ("source_", "target_" ``predicted_overlap``: the network's estimate of
+    the share of each cloud that overlaps the other). Empty for a peer's result."""
     if getattr(res, "source_overlap", None) is None or not len(res.source_overlap):
         return {}
     return {"explored": bool(res.explored), "draws": int(res.draws),
