@@ -116,6 +116,30 @@ def test_cli_generates_resumes_and_refuses_other_settings(tmp_path, capsys):
     assert exc.value.code == 2
 
 
+def test_cli_first_room_grows_a_cache_in_pieces(tmp_path, capsys):
+    """--first-room renders the later rooms alone; the earlier ones come after, into the same
+    folder, and the cache is then the one a single run makes."""
+    base = ["--split", "val", "--rooms", "3", "--rooms-per-shard", "1", "--fragments", "3",
+            "--pairs", "2", "--max-points", "1500", "--quiet"]
+    grown = tmp_path / "grown"
+    assert make_pairs.main(base + ["--out", str(grown), "--first-room", "2"]) == 0
+    assert [p.name for p in PC.list_shards(grown)] == [PC.shard_name(2, 3)]
+    late = PC.PairCache(grown, split="val")
+    assert len(late) >= 1 and all(splits.room_seed("val", 2) == s for s in late.room_seeds)
+    assert make_pairs.main(base + ["--out", str(grown)]) == 0
+    assert make_pairs.main(base + ["--out", str(tmp_path / "whole")]) == 0
+    a, b = PC.PairCache(grown), PC.PairCache(tmp_path / "whole")
+    assert len(a) == len(b) and len(PC.list_shards(grown)) == 3
+    for i in range(len(a)):
+        np.testing.assert_array_equal(a[i].source, b[i].source)
+        np.testing.assert_array_equal(a[i].T_target_source, b[i].T_target_source)
+    for bad, why in ((["--first-room", "3"], "in [0, --rooms)"),
+                     (["--first-room", "1", "--rooms-per-shard", "2"], "multiple of --rooms-per-shard")):
+        with pytest.raises(SystemExit) as exc:
+            make_pairs.main(base + ["--out", str(tmp_path / "bad")] + bad)
+        assert exc.value.code == 2 and why in capsys.readouterr().err
+
+
 def test_cli_workers_write_the_same_pairs(tmp_path):
     """--workers 2 renders shards in two spawned processes: the same shards, pair for pair, as
     one process (only the timing fields of their meta differ)."""

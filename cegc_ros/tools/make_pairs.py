@@ -33,6 +33,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", choices=("train", "val", "test"),
                    help="room-seed range (train / val / test never share a room)")
     p.add_argument("--rooms", type=int, help="make rooms 0 .. ROOMS-1 of the split (>= 1)")
+    p.add_argument("--first-room", type=int, default=0,
+                   help="make only rooms FIRST_ROOM .. ROOMS-1 this time (default 0; a multiple "
+                        "of --rooms-per-shard): a cache grown in pieces, e.g. new rooms first for "
+                        "a network that trained on the first ones (the trainer reads the shards "
+                        "there are)")
     p.add_argument("--rooms-per-shard", type=int, default=8,
                    help="rooms per shard file (default 8; fixed for a cache)")
     p.add_argument("--lidar-fraction", type=float, default=0.1,
@@ -86,6 +91,11 @@ def _usage_errors(args: argparse.Namespace) -> str | None:
         return "--split and --rooms are required (or --stats)"
     checks = [(args.rooms >= 1, f"--rooms must be >= 1, got {args.rooms}"),
               (args.rooms_per_shard >= 1, "--rooms-per-shard must be >= 1"),
+              (0 <= args.first_room < args.rooms, f"--first-room must be in [0, --rooms), got "
+                                                   f"{args.first_room}"),
+              (args.rooms_per_shard < 1 or args.first_room % args.rooms_per_shard == 0,
+               f"--first-room must be a multiple of --rooms-per-shard ({args.rooms_per_shard}), "
+               f"got {args.first_room}"),
               (0.0 <= args.lidar_fraction <= 1.0, "--lidar-fraction must be in [0, 1]"),
               (args.fragments >= 2, "--fragments must be >= 2"),
               (args.pairs >= 0 and args.copy_pairs >= 0, "--pairs/--copy-pairs must be >= 0"),
@@ -167,13 +177,14 @@ def generate(args: argparse.Namespace) -> int:
     config = ViewConfig(fragments=args.fragments, pairs=args.pairs, copy_pairs=args.copy_pairs,
                         max_points=args.max_points, wall_views=args.wall_views)
     digest = _generator_digest()
-    todo = [k0 for k0 in range(0, n_rooms, R) if not (out / shard_name(k0, k0 + R)).exists()]
-    done_before = len(range(0, n_rooms, R)) - len(todo)
+    wanted = range(args.first_room, n_rooms, R)
+    todo = [k0 for k0 in wanted if not (out / shard_name(k0, k0 + R)).exists()]
     if not args.quiet:
         side_by_side = min(args.workers, len(todo))
         workers = f" by {side_by_side} processes" if side_by_side > 1 else ""
-        print(f"[cegc-make-pairs] {args.split}: {n_rooms} rooms in {len(range(0, n_rooms, R))} "
-              f"shards, {done_before} done, {len(todo)} to make{workers} -> {out}", flush=True)
+        print(f"[cegc-make-pairs] {args.split}: rooms {args.first_room}-{n_rooms - 1} in "
+              f"{len(wanted)} shards, {len(wanted) - len(todo)} done, {len(todo)} to make{workers} "
+              f"-> {out}", flush=True)
     make = functools.partial(make_shard, out, args.split, rooms_per_shard=R,
                              lidar_fraction=args.lidar_fraction, config=config,
                              settings=settings, digest=digest)
