@@ -116,6 +116,9 @@ class TrainConfig:
     bf16: bool = False   # bf16 autocast where the hardware has it (CUDA, AVX-512-BF16 / AMX CPUs); elsewhere fp32
     threads: int = 0
     workers: int = 0     # DataLoader processes preparing pairs while the network trains (0: in the loop)
+    # every this many steps the pair cache takes in the shards written since (a cache rendered
+    # while the network trains; PairStream); 0: the shards there were at the start
+    refresh_steps: int = 500
     objective: str = "candidates"   # OBJECTIVES
     learned_candidates: int = 3     # as engine.learned_candidates
     fpfh_candidates: int = 2        # as engine.fpfh_candidates
@@ -247,6 +250,15 @@ class PairSampler:
                 return pair
         return None
 
+    def refresh(self) -> int:
+        """Index the pair cache's shards written since it was opened or last refreshed (a cache
+        that grows while the network trains) -> pairs added; the overlap bands are recomputed
+        when any were."""
+        added = int(self.pairs.refresh()) if hasattr(self.pairs, "refresh") else 0
+        if added:
+            self._bands.clear()
+        return added
+
     def _overlap_band(self, lo: float, hi: float) -> np.ndarray:
         """Indices of the pair cache's pairs with overlap in [lo, hi] (computed once per band)."""
         key = (lo, hi)
@@ -280,7 +292,13 @@ class PairStream(torch.utils.data.IterableDataset):
     (seed, rank, step), so the stream is the same with or without DataLoader workers and
     after a resume. With W workers, worker k prepares steps start + k, start + k + W, ...;
     the DataLoader takes them round-robin, i.e. in step order. ``curriculum_offset``: pairs the
-    network saw before this run (a warm start), added to the step to pick the curriculum stage."""
+    network saw before this run (a warm start), added to the step to pick the curriculum stage.
+
+    At every multiple of ``cfg.refresh_steps`` the sampler's pair cache takes in the shards
+    written since (each worker its own copy, at its first step past the multiple): a cache that
+    is still being rendered feeds the run as it grows. The stream is then the same after a
+    resume only for a cache that did not grow in between (the pairs a step draws depend on the
+    cache's size)."""
 
     def __init__(self, sampler: PairSampler, cfg: TrainConfig, rank: int, start: int,
                  curriculum_offset: int = 0) -> None:
@@ -292,7 +310,12 @@ class PairStream(torch.utils.data.IterableDataset):
         info = torch.utils.data.get_worker_info()
         k, w = (info.id, info.num_workers) if info is not None else (0, 1)
         step = self.start + k
+        every = self.cfg.refresh_steps
+        next_refresh = (step // every + 1) * every if every > 0 else None
         while True:
+            if next_refresh is not None and step >= next_refresh:
+                self.sampler.refresh()
+                next_refresh = (step // every + 1) * every
             rng = np.random.default_rng([self.cfg.seed, self.rank, step])
             yield self.sampler.sample(rng, _stage(self.cfg, step + self.offset))
             step += w

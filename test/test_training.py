@@ -254,6 +254,55 @@ def test_pair_stream_is_keyed_by_step_so_a_resume_continues_it():
     assert not torch.equal(first[2]["R"], first[3]["R"])
 
 
+def test_pair_stream_takes_in_shards_written_while_it_trains(tmp_path):
+    """A pair cache rendered while the network trains: the stream refreshes it every
+    refresh_steps steps (counted from step 0, so a resume keeps the rhythm) and the sampler's
+    overlap bands then include the new pairs."""
+    from cegc_ros.data.pair_cache import PairCache
+    from cegc_ros.tools import make_pairs
+    from cegc_ros.training import PairStream, TrainConfig
+
+    class Counting:
+        """A sampler that records at which steps the stream refreshed it."""
+        def __init__(self) -> None:
+            self.refreshed: list[int] = []
+            self.step = -1
+
+        def refresh(self) -> int:
+            self.refreshed.append(self.step + 1)
+            return 0
+
+        def sample(self, rng, stage):
+            self.step += 1
+            return self.step
+
+    counting = Counting()
+    cfg = TrainConfig(refresh_steps=4, stages=[Stage(10**9, 45.0, 64)])
+    stream = iter(PairStream(counting, cfg, rank=0, start=6))
+    counting.step = 5
+    assert [next(stream) for _ in range(9)] == list(range(6, 15))
+    assert counting.refreshed == [8, 12]
+    cfg.refresh_steps = 0
+    never = Counting()
+    stream = iter(PairStream(never, cfg, rank=0, start=0))
+    [next(stream) for _ in range(9)]
+    assert never.refreshed == []
+
+    out = tmp_path / "pairs"
+    base = ["--split", "val", "--rooms-per-shard", "1", "--fragments", "3", "--pairs", "3",
+            "--max-points", "1500", "--quiet", "--out", str(out)]
+    assert make_pairs.main(base + ["--rooms", "1"]) == 0
+    sampler = PairSampler([], 0.0, {"with_features": True}, pairs=PairCache(out))
+    before = len(sampler.pairs)
+    band = sampler._overlap_band(0.0, 1.0)
+    assert len(band) == before >= 1
+    assert sampler.refresh() == 0
+    assert make_pairs.main(base + ["--rooms", "3"]) == 0
+    added = sampler.refresh()
+    assert added >= 1 and len(sampler.pairs) == before + added
+    np.testing.assert_array_equal(sampler._overlap_band(0.0, 1.0), np.arange(before + added))
+
+
 def test_the_paper_objective_stays_trainable(tmp_path):
     frags = fragments(2)
     cfg = tiny_config(tmp_path / "paper", max_steps=2)
