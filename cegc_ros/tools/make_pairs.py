@@ -36,8 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first-room", type=int, default=0,
                    help="make only rooms FIRST_ROOM .. ROOMS-1 this time (default 0; a multiple "
                         "of --rooms-per-shard): a cache grown in pieces, e.g. new rooms first for "
-                        "a network that trained on the first ones (the trainer reads the shards "
-                        "there are)")
+                        "a network that trained on the first ones (a training run takes the "
+                        "shards in as they are written, train.refresh_steps)")
     p.add_argument("--rooms-per-shard", type=int, default=8,
                    help="rooms per shard file (default 8; fixed for a cache)")
     p.add_argument("--lidar-fraction", type=float, default=0.1,
